@@ -1,0 +1,367 @@
+"""The data contract: ``dataset@1`` and ``checkpoints@1`` in, atomic JSON out.
+
+See ``../shared/spec/dataset.md`` (mirrored in ``docs/conventions.md``).
+Every problem found in an input file is reported with the item it concerns
+(target id, image id, observation index). Problems that make the file
+unusable raise :class:`DatasetError`; problems that only remove an
+observation or an image are recorded in :attr:`Dataset.dropped` /
+:attr:`Dataset.skipped_images` and counted in the output statistics.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+DATASET_FORMAT = "gtsam-sphere/dataset@1"
+CHECKPOINTS_FORMAT = "gtsam-sphere/checkpoints@1"
+CALIBRATION_FORMAT = "gtsam-sphere/calibration@1"
+
+
+class DatasetError(ValueError):
+    """An input file violates the data contract; the message names the item."""
+
+
+@dataclass
+class Dataset:
+    """A validated ``dataset@1``, flattened into arrays.
+
+    Attributes
+    ----------
+    width, height : int
+        Image size in pixels.
+    units : str
+        Object-space units (``"m"`` unless the file says otherwise).
+    target_ids : list of str, length T
+    target_xyz : ndarray, shape (T, 3)
+        Approximate world coordinates, in ``units``.
+    target_sigma : ndarray, shape (T,)
+        Isotropic standard deviation of ``target_xyz`` in ``units``; ``0`` exact
+        control, ``NaN`` when absent (free network).
+    image_ids : list of str, length M
+        Images kept (those with enough observations).
+    obs_image : ndarray of int, shape (N,)
+        Index into ``image_ids`` per observation.
+    obs_target : ndarray of int, shape (N,)
+        Index into ``target_ids`` per observation.
+    uv_px : ndarray, shape (N, 2)
+        Observed pixel positions, ``(0, 0)`` = centre of the top-left pixel.
+    skipped_images : list of (str, str)
+        ``(image id, reason)`` for images left out.
+    dropped : list of (str, str, str)
+        ``(image id, target id, reason)`` for observations left out.
+    """
+
+    width: int
+    height: int
+    units: str
+    target_ids: list[str]
+    target_xyz: np.ndarray
+    target_sigma: np.ndarray
+    image_ids: list[str]
+    obs_image: np.ndarray
+    obs_target: np.ndarray
+    uv_px: np.ndarray
+    skipped_images: list[tuple[str, str]] = field(default_factory=list)
+    dropped: list[tuple[str, str, str]] = field(default_factory=list)
+    source: str | None = None
+
+    @property
+    def n_observations(self) -> int:
+        """Number of observations kept."""
+        return len(self.obs_image)
+
+    def target_index(self) -> dict[str, int]:
+        """Map target id -> row of ``target_xyz``."""
+        return {t: i for i, t in enumerate(self.target_ids)}
+
+    def subset_images(self, keep: np.ndarray, reasons: dict[int, str] | None = None) -> Dataset:
+        """Return a copy keeping images where ``keep`` (M,) is True.
+
+        Images removed are appended to ``skipped_images`` with ``reasons[i]``.
+        """
+        keep = np.asarray(keep, bool)
+        reasons = reasons or {}
+        new_index = -np.ones(len(self.image_ids), int)
+        new_index[keep] = np.arange(keep.sum())
+        obs_keep = keep[self.obs_image]
+        skipped = list(self.skipped_images) + [
+            (self.image_ids[i], reasons.get(i, "removed")) for i in np.flatnonzero(~keep)
+        ]
+        return Dataset(
+            width=self.width,
+            height=self.height,
+            units=self.units,
+            target_ids=self.target_ids,
+            target_xyz=self.target_xyz,
+            target_sigma=self.target_sigma,
+            image_ids=[m for m, k in zip(self.image_ids, keep) if k],
+            obs_image=new_index[self.obs_image[obs_keep]],
+            obs_target=self.obs_target[obs_keep],
+            uv_px=self.uv_px[obs_keep],
+            skipped_images=skipped,
+            dropped=list(self.dropped),
+            source=self.source,
+        )
+
+
+def _finite_vector(value: Any, n: int, where: str) -> np.ndarray:
+    if not isinstance(value, (list, tuple)) or len(value) != n:
+        raise DatasetError(f"{where}: expected a list of {n} numbers, got {value!r}")
+    out = []
+    for v in value:
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            raise DatasetError(f"{where}: expected numbers, got {value!r}")
+        if not math.isfinite(v):
+            raise DatasetError(f"{where}: contains NaN or inf: {value!r}")
+        out.append(float(v))
+    return np.array(out)
+
+
+def _check_format(doc: Any, expected: str, path: str) -> None:
+    if not isinstance(doc, dict):
+        raise DatasetError(f"{path}: top level must be a JSON object, got {type(doc).__name__}")
+    fmt = doc.get("format")
+    if fmt != expected:
+        family = expected.rsplit("@", 1)[0]
+        if isinstance(fmt, str) and fmt.startswith(family + "@"):
+            raise DatasetError(
+                f"{path}: unsupported version {fmt!r}; this reader knows {expected!r}"
+            )
+        raise DatasetError(f"{path}: 'format' is {fmt!r}, expected {expected!r}")
+
+
+def read_json(path: str | os.PathLike) -> Any:
+    """Read a JSON file; a malformed or truncated file raises :class:`DatasetError`."""
+    path = str(path)
+    try:
+        with open(path, encoding="utf-8") as fh:
+            return json.load(fh)
+    except FileNotFoundError:
+        raise DatasetError(f"{path}: no such file") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise DatasetError(f"{path}: not valid JSON ({exc})") from None
+
+
+def parse_dataset(
+    doc: Any, source: str = "<dataset>", min_observations_per_image: int = 4
+) -> Dataset:
+    """Validate a ``dataset@1`` document (already parsed JSON) into a :class:`Dataset`.
+
+    Parameters
+    ----------
+    doc : dict
+        The JSON document.
+    source : str
+        Name used in messages (usually the file path).
+    min_observations_per_image : int
+        Images with fewer usable observations are skipped and reported.
+
+    Raises
+    ------
+    DatasetError
+        For anything that makes the file unusable: wrong format or version,
+        missing keys, duplicate target or image ids, an observation of an
+        unknown target, NaN/inf, wrong types. The message names the item.
+    """
+    _check_format(doc, DATASET_FORMAT, source)
+    units = doc.get("units", "m")
+    if not isinstance(units, str):
+        raise DatasetError(f"{source}: 'units' must be a string, got {units!r}")
+    cam = doc.get("camera")
+    if not isinstance(cam, dict):
+        raise DatasetError(f"{source}: missing 'camera' object with width and height")
+    try:
+        width, height = cam["width"], cam["height"]
+    except KeyError as exc:
+        raise DatasetError(f"{source}: camera is missing {exc.args[0]!r}") from None
+    for name, v in (("width", width), ("height", height)):
+        if isinstance(v, bool) or not isinstance(v, int) or v <= 0:
+            raise DatasetError(f"{source}: camera.{name} must be a positive integer, got {v!r}")
+
+    targets = doc.get("targets")
+    if not isinstance(targets, list) or not targets:
+        raise DatasetError(f"{source}: 'targets' must be a non-empty list")
+    ids, xyz, sigma, index = [], [], [], {}
+    for k, t in enumerate(targets):
+        if not isinstance(t, dict):
+            raise DatasetError(f"{source}: targets[{k}] must be an object, got {t!r}")
+        tid = t.get("id")
+        if not isinstance(tid, str) or not tid:
+            raise DatasetError(f"{source}: targets[{k}] has no string 'id' (got {tid!r})")
+        if tid in index:
+            raise DatasetError(f"{source}: duplicate target id {tid!r} (targets[{k}])")
+        where = f"{source}: target {tid!r}"
+        p = _finite_vector(t.get("xyz"), 3, where + " xyz")
+        s = t.get("sigma", None)
+        if s is None:
+            s = math.nan
+        elif isinstance(s, bool) or not isinstance(s, (int, float)) or not math.isfinite(s):
+            raise DatasetError(f"{where}: sigma must be a finite number >= 0, got {s!r}")
+        elif s < 0:
+            raise DatasetError(f"{where}: sigma must be >= 0, got {s!r}")
+        index[tid] = len(ids)
+        ids.append(tid)
+        xyz.append(p)
+        sigma.append(float(s))
+
+    images = doc.get("images")
+    if not isinstance(images, list) or not images:
+        raise DatasetError(f"{source}: 'images' must be a non-empty list")
+    image_ids: list[str] = []
+    seen_images: set[str] = set()
+    obs_image, obs_target, uv = [], [], []
+    skipped: list[tuple[str, str]] = []
+    dropped: list[tuple[str, str, str]] = []
+    for k, im in enumerate(images):
+        if not isinstance(im, dict):
+            raise DatasetError(f"{source}: images[{k}] must be an object")
+        iid = im.get("id")
+        if not isinstance(iid, str) or not iid:
+            raise DatasetError(f"{source}: images[{k}] has no string 'id' (got {iid!r})")
+        if iid in seen_images:
+            raise DatasetError(f"{source}: duplicate image id {iid!r} (images[{k}])")
+        seen_images.add(iid)
+        observations = im.get("observations", [])
+        if not isinstance(observations, list):
+            raise DatasetError(f"{source}: image {iid!r}: 'observations' must be a list")
+        rows: list[tuple[int, np.ndarray]] = []
+        seen_targets: set[str] = set()
+        for q, ob in enumerate(observations):
+            where = f"{source}: image {iid!r} observation {q}"
+            if not isinstance(ob, dict):
+                raise DatasetError(f"{where}: must be an object")
+            tid = ob.get("target")
+            if tid not in index:
+                raise DatasetError(f"{where}: unknown target id {tid!r}")
+            if tid in seen_targets:
+                raise DatasetError(f"{where}: target {tid!r} observed twice in this image")
+            seen_targets.add(tid)
+            p = _finite_vector(ob.get("uv"), 2, where + " uv")
+            if not (-0.5 <= p[0] <= width - 0.5 and -0.5 <= p[1] <= height - 0.5):
+                dropped.append((iid, tid, f"uv {p.tolist()} outside the {width}x{height} image"))
+                continue
+            rows.append((index[tid], p))
+        if len(rows) < min_observations_per_image:
+            skipped.append(
+                (iid, f"only {len(rows)} usable observations (< {min_observations_per_image})")
+            )
+            continue
+        m = len(image_ids)
+        image_ids.append(iid)
+        for t_idx, p in rows:
+            obs_image.append(m)
+            obs_target.append(t_idx)
+            uv.append(p)
+    if not image_ids:
+        reasons = "; ".join(f"{i}: {r}" for i, r in skipped[:5])
+        raise DatasetError(f"{source}: no usable image ({reasons})")
+    return Dataset(
+        width=int(width),
+        height=int(height),
+        units=units,
+        target_ids=ids,
+        target_xyz=np.array(xyz),
+        target_sigma=np.array(sigma),
+        image_ids=image_ids,
+        obs_image=np.array(obs_image, int),
+        obs_target=np.array(obs_target, int),
+        uv_px=np.array(uv, float).reshape(-1, 2),
+        skipped_images=skipped,
+        dropped=dropped,
+        source=source,
+    )
+
+
+def load_dataset(path: str | os.PathLike, min_observations_per_image: int = 4) -> Dataset:
+    """Read and validate a ``gtsam-sphere/dataset@1`` file.
+
+    Parameters
+    ----------
+    path : path-like
+    min_observations_per_image : int
+        Images with fewer usable observations are skipped and reported.
+
+    Returns
+    -------
+    Dataset
+    """
+    return parse_dataset(read_json(path), str(path), min_observations_per_image)
+
+
+def load_checkpoints(path: str | os.PathLike) -> tuple[list[str], np.ndarray, str]:
+    """Read a ``gtsam-sphere/checkpoints@1`` file.
+
+    Returns
+    -------
+    ids : list of str, length K
+    xyz : ndarray, shape (K, 3)
+        Independently surveyed coordinates, in ``units``.
+    units : str
+    """
+    source = str(path)
+    doc = read_json(path)
+    _check_format(doc, CHECKPOINTS_FORMAT, source)
+    targets = doc.get("targets")
+    if not isinstance(targets, list) or not targets:
+        raise DatasetError(f"{source}: 'targets' must be a non-empty list")
+    ids, xyz = [], []
+    for k, t in enumerate(targets):
+        if not isinstance(t, dict) or not isinstance(t.get("id"), str):
+            raise DatasetError(f"{source}: targets[{k}] needs a string 'id'")
+        if t["id"] in ids:
+            raise DatasetError(f"{source}: duplicate check point id {t['id']!r}")
+        ids.append(t["id"])
+        xyz.append(_finite_vector(t.get("xyz"), 3, f"{source}: check point {t['id']!r} xyz"))
+    return ids, np.array(xyz), doc.get("units", "m")
+
+
+def _jsonable(obj: Any) -> Any:
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _jsonable(obj.tolist())
+    if isinstance(obj, (np.floating, float)):
+        v = float(obj)
+        if not math.isfinite(v):
+            raise ValueError("refusing to write NaN or inf to a JSON output file")
+        return v
+    if isinstance(obj, np.integer):
+        return int(obj)
+    if isinstance(obj, np.bool_):
+        return bool(obj)
+    return obj
+
+
+def write_json_atomic(path: str | os.PathLike, doc: Any, indent: int | None = 1) -> Path:
+    """Write ``doc`` as JSON to ``path`` atomically (temporary file + rename).
+
+    A reader never sees a half-written file; NaN or inf anywhere raises
+    ``ValueError`` and leaves any existing file untouched.
+    """
+    path = Path(path)
+    text = json.dumps(_jsonable(doc), indent=indent, allow_nan=False)
+    directory = path.parent if str(path.parent) else Path(".")
+    directory.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=directory)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as fh:
+            fh.write(text)
+            fh.write("\n")
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    return path
