@@ -72,6 +72,7 @@ class Dataset:
     skipped_images: list[tuple[str, str]] = field(default_factory=list)
     dropped: list[tuple[str, str, str]] = field(default_factory=list)
     source: str | None = None
+    n_input_observations: int = 0
 
     @property
     def n_observations(self) -> int:
@@ -109,6 +110,7 @@ class Dataset:
             skipped_images=skipped,
             dropped=list(self.dropped),
             source=self.source,
+            n_input_observations=self.n_input_observations,
         )
 
 
@@ -220,6 +222,7 @@ def parse_dataset(
     obs_image, obs_target, uv = [], [], []
     skipped: list[tuple[str, str]] = []
     dropped: list[tuple[str, str, str]] = []
+    n_input = 0
     for k, im in enumerate(images):
         if not isinstance(im, dict):
             raise DatasetError(f"{source}: images[{k}] must be an object")
@@ -232,6 +235,7 @@ def parse_dataset(
         observations = im.get("observations", [])
         if not isinstance(observations, list):
             raise DatasetError(f"{source}: image {iid!r}: 'observations' must be a list")
+        n_input += len(observations)
         rows: list[tuple[int, np.ndarray]] = []
         seen_targets: set[str] = set()
         for q, ob in enumerate(observations):
@@ -277,6 +281,7 @@ def parse_dataset(
         skipped_images=skipped,
         dropped=dropped,
         source=source,
+        n_input_observations=n_input,
     )
 
 

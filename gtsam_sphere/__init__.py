@@ -1,0 +1,23 @@
+"""gtsam_sphere: calibrate any central camera on a virtual sphere, in a GTSAM graph.
+
+Pipeline, one module per stage: :mod:`dataset` (data contract) ->
+:mod:`initialize` (P3P + RANSAC) -> :mod:`graph` (factors) ->
+:mod:`optimize` (LM / dogleg) -> :mod:`correct` (kNN corrections) ->
+:mod:`evaluate` (check points) -> report.
+"""
+
+from .calibration import Calibration, load_calibration
+from .camera import Model, SphereCamera
+from .dataset import Dataset, DatasetError, load_checkpoints, load_dataset
+
+__all__ = [
+    "Calibration",
+    "Dataset",
+    "DatasetError",
+    "Model",
+    "SphereCamera",
+    "load_calibration",
+    "load_checkpoints",
+    "load_dataset",
+]
+__version__ = "0.1.0"

@@ -1,0 +1,374 @@
+"""The calibration pipeline: data -> init -> graph -> optimize -> (correct) -> result.
+
+:func:`adjust` runs one robust bundle adjustment with self-calibration on a
+:class:`~gtsam_sphere.graph.BundleProblem`; :func:`calibrate` runs the whole
+job on a :class:`~gtsam_sphere.dataset.Dataset`.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+
+import gtsam
+import numpy as np
+
+from .calibration import Calibration
+from .camera import Model, SphereCamera, parse_brown_terms
+from .dataset import Dataset
+from .geometry import fit_similarity, incidence_deg
+from .graph import (
+    INTRINSICS_KEY,
+    BundleProblem,
+    Datum,
+    Loss,
+    NoiseOptions,
+    point_key,
+    pose_key,
+    robust_weight,
+)
+from .optimize import OptimizationResult, OptimizerKind, OptimizerOptions, make_ordering, optimize
+
+# median of the norm of a 2-D standard normal vector: sqrt(2 ln 2)
+_MEDIAN_CHI2 = math.sqrt(2.0 * math.log(2.0))
+
+
+@dataclass
+class CalibrationOptions:
+    """Options of :func:`calibrate` (and of ``gtsam-sphere calibrate``).
+
+    Attributes
+    ----------
+    model : Model
+        ``sphere`` (IOP only), ``brown`` (IOP + ``brown_terms``), ``sphere+knn``.
+    brown_terms : tuple of str
+        Brown additional parameters for ``model="brown"`` (default k1,k2,k3,p1,p2).
+    optimizer : OptimizerKind
+    loss : Loss
+    loss_threshold : float
+        In units of ``sigma_px``.
+    sigma_px : float or None
+        Image-coordinate standard deviation; ``None`` estimates it from the
+        residuals (robust MAD) and adjusts again.
+    max_iterations : int
+    points_per_factor : int
+    seed : int
+        Seed of every random choice (RANSAC, cross-validation).
+    """
+
+    model: Model = Model.SPHERE
+    brown_terms: tuple[str, ...] = ("k1", "k2", "k3", "p1", "p2")
+    optimizer: OptimizerKind = OptimizerKind.LM
+    loss: Loss = Loss.HUBER
+    loss_threshold: float = 2.45
+    sigma_px: float | None = None
+    max_iterations: int = 100
+    points_per_factor: int = 4
+    seed: int = 0
+    knn: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        self.model = Model(self.model)
+        self.optimizer = OptimizerKind(self.optimizer)
+        self.loss = Loss(self.loss)
+        if isinstance(self.brown_terms, str):
+            self.brown_terms = parse_brown_terms(self.brown_terms)
+
+
+@dataclass
+class Adjustment:
+    """State after one adjustment of a :class:`BundleProblem`.
+
+    Attributes
+    ----------
+    values : gtsam.Values
+    residuals_px : ndarray, shape (N, 2)
+        ``measured (corrected) - predicted``.
+    weights : ndarray, shape (N,)
+        Robust weight per observation.
+    result : OptimizationResult
+    """
+
+    values: gtsam.Values
+    residuals_px: np.ndarray
+    weights: np.ndarray
+    result: OptimizationResult
+    sigma_px: float
+
+
+def initial_values(
+    problem: BundleProblem,
+    world_from_cam: list[gtsam.Pose3],
+    theta: np.ndarray,
+    target_xyz: np.ndarray | None = None,
+) -> gtsam.Values:
+    """Values for the problem's variables: poses, free targets, intrinsics."""
+    xyz = problem.target_xyz if target_xyz is None else target_xyz
+    values = gtsam.Values()
+    for i in np.unique(problem.obs_image):
+        values.insert(pose_key(int(i)), world_from_cam[int(i)])
+    for t in problem.free_targets:
+        values.insert(point_key(int(t)), np.asarray(xyz[t], float))
+    values.insert(INTRINSICS_KEY, np.asarray(theta, float))
+    return values
+
+
+def adjust(
+    problem: BundleProblem,
+    values: gtsam.Values,
+    optimizer: OptimizerOptions,
+    progress: Callable[[str], None] | None = None,
+    estimate_sigma: bool = True,
+    label: str = "",
+) -> Adjustment:
+    """Robust adjustment, optionally re-estimating ``sigma_px`` once from the residuals.
+
+    Returns
+    -------
+    Adjustment
+    """
+    ordering = make_ordering(
+        [point_key(int(t)) for t in problem.free_targets],
+        [pose_key(int(i)) for i in np.unique(problem.obs_image)],
+        [INTRINSICS_KEY],
+    )
+    graph = problem.build()
+    result = optimize(graph, values, optimizer, ordering, progress, label)
+    if estimate_sigma:
+        res = problem.residuals_px(result.values)
+        r = np.linalg.norm(res, axis=1)
+        sigma = float(np.median(r) / _MEDIAN_CHI2)
+        sigma = max(sigma, 1e-4)
+        if progress:
+            progress(f"{label}robust scale estimate sigma = {sigma:.4f} px; adjusting again")
+        problem.noise = NoiseOptions(sigma, problem.noise.loss, problem.noise.loss_threshold)
+        graph = problem.build()
+        first = result.history
+        result = optimize(graph, result.values, optimizer, ordering, progress, label)
+        offset = first[-1]["iteration"]
+        result.history = [dict(h, stage=1) for h in first] + [
+            dict(h, iteration=h["iteration"] + offset, stage=2) for h in result.history
+        ]
+    res = problem.residuals_px(result.values)
+    r = np.linalg.norm(res, axis=1) / problem.noise.sigma_px
+    w, _ = robust_weight(r, problem.noise.loss, problem.noise.loss_threshold)
+    return Adjustment(result.values, res, w, result, problem.noise.sigma_px)
+
+
+def initial_principal_distance(
+    uv_px: np.ndarray, points_cam: np.ndarray, principal_point_px: np.ndarray
+) -> float:
+    """Least-squares ``c`` of ``uv - pp = c * P[:2] / |P|`` over observations (N,2), (N,3)."""
+    s = points_cam[:, :2] / np.linalg.norm(points_cam, axis=1)[:, None]
+    xbar = uv_px - principal_point_px
+    ok = np.all(np.isfinite(s), axis=1)
+    return float((xbar[ok] * s[ok]).sum() / max((s[ok] * s[ok]).sum(), 1e-12))
+
+
+def _poses_from_values(values: gtsam.Values, n_images: int):
+    R = np.empty((n_images, 3, 3))
+    t = np.empty((n_images, 3))
+    for i in range(n_images):
+        cam_from_world = values.atPose3(pose_key(i)).inverse()
+        R[i] = cam_from_world.rotation().matrix()
+        t[i] = cam_from_world.translation()
+    return R, t
+
+
+def calibrate(
+    dataset: Dataset,
+    options: CalibrationOptions | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> Calibration:
+    """Calibrate the camera of ``dataset``: initialise, adjust, (learn corrections).
+
+    Parameters
+    ----------
+    dataset : Dataset
+        A validated ``dataset@1``.
+    options : CalibrationOptions
+    progress : callable(str), optional
+        Receives progress lines (the CLI prints them on standard error).
+
+    Returns
+    -------
+    Calibration
+        Adjusted poses (``cam_from_world``), targets and the camera model,
+        with statistics. For a free network (no target sigma) the result is
+        S-transformed onto the approximate coordinates (inner-constraint
+        datum: the approximations fix the datum and nothing else).
+    """
+    from .initialize import initialize_poses
+
+    options = options or CalibrationOptions()
+    say = progress or (lambda _line: None)
+    rng = np.random.default_rng(options.seed)
+    say(f"initialising {len(dataset.image_ids)} images (P3P + RANSAC, lens unknown)")
+    init = initialize_poses(
+        dataset.uv_px,
+        dataset.obs_image,
+        dataset.obs_target,
+        dataset.target_xyz,
+        dataset.width,
+        dataset.height,
+        len(dataset.image_ids),
+        rng=rng,
+        progress=say,
+    )
+    say(f"initial lens hypothesis: {init.mapping}, f = {init.f_px:.1f} px")
+    n_input_images = len(dataset.image_ids)
+    if not np.all(init.ok):
+        for i, why in sorted(init.failures.items()):
+            say(f"  image {dataset.image_ids[i]} not initialised: {why}")
+        reasons = {i: f"initialisation failed: {why}" for i, why in init.failures.items()}
+        init_R, init_t = init.cam_from_world_R[init.ok], init.cam_from_world_t[init.ok]
+        dataset = dataset.subset_images(init.ok, reasons)
+    else:
+        init_R, init_t = init.cam_from_world_R, init.cam_from_world_t
+
+    pp = np.array([(dataset.width - 1) / 2.0, (dataset.height - 1) / 2.0])
+    pc = np.einsum("nij,nj->ni", init_R[dataset.obs_image], dataset.target_xyz[dataset.obs_target])
+    pc += init_t[dataset.obs_image]
+    c0 = initial_principal_distance(dataset.uv_px, pc, pp)
+    say(f"initial principal distance c = {c0:.1f} px")
+
+    brown_names = options.brown_terms if options.model is Model.BROWN else ()
+    problem = BundleProblem(
+        obs_image=dataset.obs_image,
+        obs_target=dataset.obs_target,
+        uv_px=dataset.uv_px,
+        target_xyz=dataset.target_xyz,
+        target_sigma=dataset.target_sigma,
+        n_images=len(dataset.image_ids),
+        brown_names=tuple(brown_names),
+        brown_scale_px=0.5 * max(dataset.width, dataset.height),
+        noise=NoiseOptions(options.sigma_px or 1.0, options.loss, options.loss_threshold),
+        points_per_factor=options.points_per_factor,
+    )
+    world_from_cam = [
+        gtsam.Pose3(gtsam.Rot3(R), gtsam.Point3(*t)).inverse() for R, t in zip(init_R, init_t)
+    ]
+    theta0 = np.concatenate([pp, [c0], np.zeros(len(brown_names))])
+    values = initial_values(problem, world_from_cam, theta0)
+    opt = OptimizerOptions(options.optimizer, options.max_iterations)
+    say(
+        f"adjusting: {len(dataset.image_ids)} images, {len(problem.free_targets)} free targets, "
+        f"{dataset.n_observations} observations, datum {problem.datum.value}"
+    )
+    adj = adjust(problem, values, opt, say, estimate_sigma=options.sigma_px is None)
+    history = adj.result.history
+    correction = None
+    if options.model is Model.SPHERE_KNN:
+        from .correct import grey_box_loop
+
+        adj, correction, history = grey_box_loop(problem, adj, opt, options, say)
+
+    return _result(dataset, problem, adj, correction, history, options, n_input_images)
+
+
+def _result(dataset, problem, adj, correction, history, options, n_input_images) -> Calibration:
+    values = adj.values
+    theta = values.atVector(INTRINSICS_KEY)
+    camera = SphereCamera(
+        width=dataset.width,
+        height=dataset.height,
+        xp=float(theta[0]),
+        yp=float(theta[1]),
+        c=float(theta[2]),
+        brown=dict(zip(problem.brown_names, map(float, theta[3:]))),
+        brown_scale_px=problem.brown_scale_px,
+        correction=correction,
+    )
+    R, t = _poses_from_values(values, len(dataset.image_ids))
+    xyz = dataset.target_xyz.copy()
+    for j in problem.free_targets:
+        xyz[j] = values.atPoint3(point_key(int(j)))
+    if problem.datum is Datum.FREE:
+        free = problem.free_targets
+        sim = fit_similarity(xyz[free], dataset.target_xyz[free])
+        xyz[free] = sim.apply(xyz[free])
+        R, t = sim.apply_to_cam_from_world(R, t)
+    used_targets = np.unique(dataset.obs_target)
+    pc = np.einsum("nij,nj->ni", R[dataset.obs_image], xyz[dataset.obs_target])
+    pc += t[dataset.obs_image]
+    inc = incidence_deg(pc)
+    res = adj.residuals_px
+    r_norm = np.linalg.norm(res, axis=1)
+    sigma = adj.sigma_px
+    whitened2 = (r_norm / sigma) ** 2
+    n_obs = dataset.n_observations
+    n_priors = int(
+        np.sum(
+            np.isfinite(problem.target_sigma[problem.free_targets])
+            & (problem.target_sigma[problem.free_targets] > 0)
+        )
+    )
+    redundancy = 2 * n_obs + 3 * n_priors + problem.n_datum_constraints() - problem.n_unknowns()
+    outlier = r_norm > 5.0 * sigma
+    down = np.flatnonzero(adj.weights < 1.0)
+    down = down[np.argsort(-r_norm[down])]
+    n_rejected = dataset.n_input_observations - n_obs
+    statistics = {
+        "rms_px": float(np.sqrt(np.mean(r_norm**2))),
+        "rms_px_without_outliers": float(np.sqrt(np.mean(r_norm[~outlier] ** 2))),
+        "n_observations": int(n_obs),
+        "n_rejected": int(n_rejected),
+        "n_images": len(dataset.image_ids),
+        "n_images_skipped": len(dataset.skipped_images),
+        "n_images_input": n_input_images + 0,
+        "n_targets": int(len(used_targets)),
+        "n_downweighted": int(len(down)),
+        "n_outliers": int(outlier.sum()),
+        "sigma_px": float(sigma),
+        "loss": str(problem.noise.loss),
+        "loss_threshold": float(problem.noise.loss_threshold),
+        "weighted_sum_squares": float(np.sum(adj.weights * whitened2)),
+        "cost": float(history[-1]["cost"]),
+        "redundancy": int(redundancy),
+        "variance_factor": float(np.sum(adj.weights * whitened2) / max(redundancy, 1)),
+        "max_incidence_deg": float(np.max(inc)),
+        "fov_deg": float(2 * np.max(inc)),
+        "n_beyond_90deg": int(np.sum(inc > 90.0)),
+        "iterations": int(history[-1]["iteration"]),
+        "status": adj.result.status,
+        "converged": bool(adj.result.converged),
+        "datum": problem.datum.value,
+    }
+    ids = dataset.image_ids
+    tids = dataset.target_ids
+    extra = {
+        "downweighted": [
+            {
+                "image": ids[dataset.obs_image[o]],
+                "target": tids[dataset.obs_target[o]],
+                "residual_px": res[o],
+                "weight": float(adj.weights[o]),
+                "outlier": bool(outlier[o]),
+            }
+            for o in down
+        ],
+        "skipped_images": [{"id": i, "reason": why} for i, why in dataset.skipped_images],
+        "dropped_observations": [
+            {"image": i, "target": tg, "reason": why} for i, tg, why in dataset.dropped
+        ],
+        "history": history,
+        "options": {
+            k: (str(v) if not isinstance(v, (int, float, dict, tuple, list)) else v)
+            for k, v in asdict(options).items()
+        },
+    }
+    if dataset.source:
+        extra["source"] = str(dataset.source)
+    return Calibration(
+        model=str(options.model),
+        camera=camera,
+        image_ids=list(ids),
+        cam_from_world_R=R,
+        cam_from_world_t=t,
+        target_ids=[tids[j] for j in used_targets],
+        target_xyz=xyz[used_targets],
+        statistics=statistics,
+        units=dataset.units,
+        extra=extra,
+    )

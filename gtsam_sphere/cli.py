@@ -1,0 +1,231 @@
+"""``gtsam-sphere``: the command line.
+
+Subcommands: ``demo``, ``simulate``, ``calibrate``, ``evaluate``, ``detect``
+(and those added by later stages). Every subcommand exits 0 on success,
+1 when the result should not be trusted, 2 on bad input.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+from .camera import Model, parse_brown_terms
+from .dataset import DatasetError
+from .graph import Loss
+from .optimize import OptimizerKind, stderr_progress
+
+
+def _add_calibration_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--model", choices=[m.value for m in Model], default=Model.SPHERE.value)
+    p.add_argument(
+        "--ap",
+        default="k1,k2,k3,p1,p2",
+        help="Brown additional parameters for --model brown, e.g. k1,k2,p1,p2 or all",
+    )
+    p.add_argument("--optimizer", choices=[o.value for o in OptimizerKind], default="lm")
+    p.add_argument("--loss", choices=[x.value for x in Loss], default="huber")
+    p.add_argument("--loss-threshold", type=float, default=2.45, help="robust threshold in sigmas")
+    p.add_argument(
+        "--sigma-px",
+        type=float,
+        default=None,
+        help="image noise sigma (px); default: estimated from the residuals",
+    )
+    p.add_argument("--max-iterations", type=int, default=100)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--quiet", action="store_true", help="no progress lines")
+
+
+def _options_from_args(args):
+    from .calibrate import CalibrationOptions
+
+    return CalibrationOptions(
+        model=Model(args.model),
+        brown_terms=parse_brown_terms(args.ap),
+        optimizer=OptimizerKind(args.optimizer),
+        loss=Loss(args.loss),
+        loss_threshold=args.loss_threshold,
+        sigma_px=args.sigma_px,
+        max_iterations=args.max_iterations,
+        seed=args.seed,
+    )
+
+
+def _print_statistics(stats: dict) -> None:
+    rows = [
+        ("RMS (px)", f"{stats['rms_px']:.4f}"),
+        ("RMS without outliers (px)", f"{stats['rms_px_without_outliers']:.4f}"),
+        ("observations used / rejected", f"{stats['n_observations']} / {stats['n_rejected']}"),
+        ("images used / skipped", f"{stats['n_images']} / {stats['n_images_skipped']}"),
+        (
+            "down-weighted / outliers (>5 sigma)",
+            f"{stats['n_downweighted']} / {stats['n_outliers']}",
+        ),
+        ("sigma (px)", f"{stats['sigma_px']:.4f}"),
+        ("weighted sum of squares", f"{stats['weighted_sum_squares']:.4e}"),
+        ("redundancy", f"{stats['redundancy']}"),
+        ("a-posteriori variance factor", f"{stats['variance_factor']:.4f}"),
+        ("largest incidence angle (deg)", f"{stats['max_incidence_deg']:.1f}"),
+        ("status", f"{stats['status']} after {stats['iterations']} iterations"),
+    ]
+    width = max(len(k) for k, _ in rows)
+    for k, v in rows:
+        print(f"  {k:<{width}}  {v}")
+
+
+def cmd_calibrate(args) -> int:
+    from .calibrate import calibrate
+    from .dataset import load_dataset
+
+    dataset = load_dataset(args.dataset)
+    for iid, why in dataset.skipped_images:
+        print(f"warning: image {iid!r} skipped: {why}", file=sys.stderr)
+    if dataset.dropped:
+        print(
+            f"warning: {len(dataset.dropped)} observations outside the image dropped "
+            f"(listed in the output)",
+            file=sys.stderr,
+        )
+    t0 = time.perf_counter()
+    calib = calibrate(dataset, _options_from_args(args), None if args.quiet else stderr_progress)
+    calib.save(args.output)
+    cam = calib.camera
+    print(
+        f"{args.output}: model {calib.model}, xp {cam.xp:.3f} px, yp {cam.yp:.3f} px, "
+        f"c {cam.c:.3f} px ({time.perf_counter() - t0:.1f} s)"
+    )
+    _print_statistics(calib.statistics)
+    return 0 if calib.statistics["converged"] else 1
+
+
+def cmd_evaluate(args) -> int:
+    from .calibration import load_calibration
+    from .dataset import load_checkpoints
+    from .evaluate import evaluate_calibration
+
+    calib = load_calibration(args.calibration)
+    ids, xyz, units = load_checkpoints(args.checkpoints)
+    rep = evaluate_calibration(calib, ids, xyz, units)
+    f = 1000.0 if units == "m" else 1.0
+    unit = "mm" if units == "m" else units
+    print(f"check points: {len(rep.ids)} used, {len(rep.missing)} not among adjusted targets")
+    print(
+        f"  RMSE X / Y / Z ({unit}): {rep.rmse_xyz[0] * f:.3f} / {rep.rmse_xyz[1] * f:.3f} / "
+        f"{rep.rmse_xyz[2] * f:.3f}   3D: {rep.rmse_3d * f:.3f}"
+    )
+    _print_statistics(calib.statistics)
+    return 0
+
+
+def cmd_demo(args) -> int:
+    from .calibrate import CalibrationOptions, calibrate
+    from .dataset import parse_dataset
+    from .evaluate import evaluate_calibration
+    from .simulate import SimulationOptions, simulate_room, write_simulation
+
+    out = Path(args.output)
+    say = None if args.quiet else stderr_progress
+    print(
+        f"simulating a room: {args.lens} lens, {args.fov_deg:.0f} deg field of view, "
+        f"noise {args.noise_px} px, seed {args.seed}"
+    )
+    sim = simulate_room(
+        SimulationOptions(
+            lens=args.lens,
+            fov_deg=args.fov_deg,
+            noise_px=args.noise_px,
+            seed=args.seed,
+            n_images=args.images,
+        )
+    )
+    paths = write_simulation(sim, out)
+    dataset = parse_dataset(sim.dataset, str(paths["dataset"]))
+    calib = calibrate(dataset, CalibrationOptions(model=Model(args.model), seed=args.seed), say)
+    calib.save(out / "calibration.json")
+    truth_cam = sim.truth["lens"]
+    ids = [t["id"] for t in sim.checkpoints["targets"]]
+    xyz = [t["xyz"] for t in sim.checkpoints["targets"]]
+    import numpy as np
+
+    rep = evaluate_calibration(calib, ids, np.array(xyz))
+    print(f"\nwrote {out / 'calibration.json'} (dataset, check points and truth beside it)\n")
+    print(f"{'':24}{'estimated':>12}{'truth':>12}")
+    for name, key in (("xp (px)", "cx"), ("yp (px)", "cy"), ("c (px)", "f")):
+        est = {"cx": calib.camera.xp, "cy": calib.camera.yp, "f": calib.camera.c}[key]
+        tv = truth_cam.get(key, float("nan")) if isinstance(truth_cam, dict) else float("nan")
+        print(f"  {name:<22}{est:>12.3f}{tv:>12.3f}")
+    print(
+        f"\n  check points: RMSE X/Y/Z (mm) {rep.rmse_xyz[0] * 1e3:.2f} / {rep.rmse_xyz[1] * 1e3:.2f}"
+        f" / {rep.rmse_xyz[2] * 1e3:.2f}, 3D {rep.rmse_3d * 1e3:.2f} ({len(rep.ids)} points)"
+    )
+    _print_statistics(calib.statistics)
+    return 0 if calib.statistics["converged"] else 1
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The ``gtsam-sphere`` argument parser."""
+    parser = argparse.ArgumentParser(
+        prog="gtsam-sphere",
+        description="Calibrate any central camera on a virtual sphere, in a GTSAM factor graph.",
+    )
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("demo", help="simulate a room and calibrate it, printing a result table")
+    p.add_argument("-o", "--output", default="gtsam_sphere_demo")
+    p.add_argument("--lens", default="sphere")
+    p.add_argument("--fov-deg", type=float, default=200.0)
+    p.add_argument("--noise-px", type=float, default=0.3)
+    p.add_argument("--images", type=int, default=52)
+    p.add_argument("--model", choices=[m.value for m in Model], default=Model.SPHERE.value)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=cmd_demo)
+
+    p = sub.add_parser("calibrate", help="calibrate a dataset@1 file")
+    p.add_argument("dataset")
+    p.add_argument("-o", "--output", required=True, help="calibration@1 file to write")
+    _add_calibration_options(p)
+    p.set_defaults(func=cmd_calibrate)
+
+    p = sub.add_parser("evaluate", help="3D accuracy against check points, image statistics")
+    p.add_argument("calibration")
+    p.add_argument("checkpoints")
+    p.set_defaults(func=cmd_evaluate)
+
+    try:
+        from . import simulate
+
+        p = sub.add_parser("simulate", help="simulate the paper's room experiment")
+        simulate.add_cli_arguments(p)
+        p.set_defaults(func=simulate.run_cli)
+    except ImportError:  # pragma: no cover
+        pass
+    try:
+        from . import detect
+
+        p = sub.add_parser("detect", help="detect board corners / markers in images")
+        detect.add_cli_arguments(p)
+        p.set_defaults(func=detect.run_cli)
+    except ImportError:  # pragma: no cover
+        pass
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of the ``gtsam-sphere`` console script."""
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except DatasetError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted: no output file was written or changed", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

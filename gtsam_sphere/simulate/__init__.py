@@ -1,0 +1,188 @@
+"""Seeded simulator of the paper's room calibration (Chow et al. 2018).
+
+Public API::
+
+    from gtsam_sphere.simulate import SimulationOptions, simulate_room, write_simulation
+    sim = simulate_room(SimulationOptions(lens="sphere", fov_deg=200, seed=1))
+    write_simulation(sim, "out/")   # dataset.json, checkpoints.json, truth.json
+
+Lens families live in :mod:`gtsam_sphere.simulate.lenses`, the room in
+:mod:`gtsam_sphere.simulate.room`. :func:`add_cli_arguments` and
+:func:`run_cli` implement ``gtsam-sphere simulate``.
+"""
+
+from __future__ import annotations
+
+import argparse
+from dataclasses import replace
+from typing import Any
+
+from .lenses import (
+    LENS_KINDS,
+    Equidistant,
+    Equisolid,
+    ErrorField,
+    KannalaBrandt,
+    NonCentral,
+    PinholeBrown,
+    SphereLens,
+    Stereographic,
+    Unified,
+    incidence_angle,
+    lens_from_dict,
+    make_lens,
+)
+from .room import (
+    SIGMA_MODES,
+    Simulation,
+    SimulationOptions,
+    build_lens,
+    gopro_like,
+    nikon_like,
+    simulate_room,
+    write_simulation,
+)
+
+__all__ = [
+    "LENS_KINDS",
+    "SIGMA_MODES",
+    "Equidistant",
+    "Equisolid",
+    "ErrorField",
+    "KannalaBrandt",
+    "NonCentral",
+    "PinholeBrown",
+    "Simulation",
+    "SimulationOptions",
+    "SphereLens",
+    "Stereographic",
+    "Unified",
+    "add_cli_arguments",
+    "build_lens",
+    "gopro_like",
+    "incidence_angle",
+    "lens_from_dict",
+    "make_lens",
+    "nikon_like",
+    "options_from_args",
+    "run_cli",
+    "simulate_room",
+    "write_simulation",
+]
+
+_PRESETS = {"nikon": nikon_like, "gopro": gopro_like}
+
+# command-line flag -> SimulationOptions field (flags default to None = keep preset)
+_FLAGS: dict[str, tuple[str, type, str]] = {
+    "--lens": ("lens", str, f"lens kind: {', '.join(LENS_KINDS)}"),
+    "--fov-deg": ("fov_deg", float, "full field of view in degrees (diagonal or circle)"),
+    "--width": ("width", int, "image width in pixels"),
+    "--height": ("height", int, "image height in pixels"),
+    "--fill": ("fill", str, "where fov/2 lands: circle or diagonal"),
+    "--n-images": ("n_images", int, "number of images"),
+    "--n-targets": ("n_targets", int, "number of targets in the room"),
+    "--n-checkpoints": ("n_checkpoints", int, "number of check points"),
+    "--checkpoint-noise-m": ("checkpoint_noise_m", float, "check point noise (m)"),
+    "--noise-px": ("noise_px", float, "pixel noise standard deviation (px)"),
+    "--target-sigma-m": ("target_sigma_m", float, "approximate target noise (m)"),
+    "--sigma-mode": ("sigma_mode", str, "weighted | free | fixed"),
+    "--blunder-rate": ("blunder_rate", float, "fraction of gross observations"),
+    "--pupil-shift-m": ("pupil_shift_m", float, "entrance pupil shift at 90 deg (m)"),
+    "--error-field-px": ("error_field_px", float, "smooth error field amplitude (px)"),
+    "--p1": ("p1", float, "decentering p1"),
+    "--p2": ("p2", float, "decentering p2"),
+    "--a1": ("a1", float, "affinity a1"),
+    "--a2": ("a2", float, "shear a2"),
+    "--seed": ("seed", int, "random seed"),
+}
+
+
+def add_cli_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """Add the ``gtsam-sphere simulate`` options to an argparse parser.
+
+    Parameters
+    ----------
+    parser : argparse.ArgumentParser
+        Parser (or sub-parser) to extend.
+
+    Returns
+    -------
+    parser : argparse.ArgumentParser
+        The same parser, for chaining.
+    """
+    parser.add_argument(
+        "--preset", choices=sorted(_PRESETS), default=None, help="start from a paper camera"
+    )
+    for flag, (dest, typ, help_text) in _FLAGS.items():
+        kwargs: dict[str, Any] = {"dest": dest, "type": typ, "default": None, "help": help_text}
+        if dest == "lens":
+            kwargs["choices"] = list(LENS_KINDS)
+        elif dest == "sigma_mode":
+            kwargs["choices"] = list(SIGMA_MODES)
+        elif dest == "fill":
+            kwargs["choices"] = ["circle", "diagonal"]
+        parser.add_argument(flag, **kwargs)
+    parser.add_argument(
+        "-o", "--out", "--output", dest="out", required=True, help="output directory"
+    )
+    return parser
+
+
+def options_from_args(args: argparse.Namespace) -> SimulationOptions:
+    """Build :class:`SimulationOptions` from parsed arguments.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        Parsed by a parser prepared with :func:`add_cli_arguments`.
+
+    Returns
+    -------
+    options : SimulationOptions
+        Preset (or defaults) overridden by every flag that was given.
+    """
+    preset = getattr(args, "preset", None)
+    base = _PRESETS[preset]() if preset else SimulationOptions()
+    overrides = {
+        dest: getattr(args, dest)
+        for dest, _, _ in _FLAGS.values()
+        if getattr(args, dest, None) is not None
+    }
+    return replace(base, **overrides)
+
+
+def run_cli(args: argparse.Namespace) -> int:
+    """Run ``gtsam-sphere simulate``: simulate, write the three files, print a summary.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        Parsed by a parser prepared with :func:`add_cli_arguments`.
+
+    Returns
+    -------
+    status : int
+        0 on success, 2 for invalid options (message on stderr).
+    """
+    import sys
+
+    try:
+        options = options_from_args(args)
+        sim = simulate_room(options)
+    except ValueError as exc:
+        print(f"gtsam-sphere simulate: error: {exc}", file=sys.stderr)
+        return 2
+    paths = write_simulation(sim, args.out)
+    stats = sim.truth["statistics"]
+    print(
+        f"simulated {options.lens} lens, {options.fov_deg:g} deg, "
+        f"{options.width}x{options.height} px, seed {options.seed}"
+    )
+    print(
+        f"images {stats['n_images']}, targets {stats['n_targets']}, "
+        f"observations {stats['n_observations']} ({stats['n_blunders']} blunders), "
+        f"max incidence {stats['max_incidence_deg']:.1f} deg"
+    )
+    for key, path in paths.items():
+        print(f"  {key}: {path}")
+    return 0

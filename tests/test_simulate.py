@@ -1,0 +1,222 @@
+"""Tests of the seeded room simulator (gtsam_sphere.simulate)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+import numpy as np
+import pytest
+
+from gtsam_sphere.simulate import (
+    SimulationOptions,
+    add_cli_arguments,
+    gopro_like,
+    lens_from_dict,
+    nikon_like,
+    run_cli,
+    simulate_room,
+    write_simulation,
+)
+
+SMALL = {"n_images": 12, "width": 1600, "height": 1200}
+
+
+def _check_dataset(ds: dict) -> None:
+    assert ds["format"] == "gtsam-sphere/dataset@1"
+    assert ds["units"] == "m"
+    w, h = ds["camera"]["width"], ds["camera"]["height"]
+    target_ids = [t["id"] for t in ds["targets"]]
+    assert len(set(target_ids)) == len(target_ids)
+    image_ids = [im["id"] for im in ds["images"]]
+    assert len(set(image_ids)) == len(image_ids)
+    known = set(target_ids)
+    for t in ds["targets"]:
+        assert len(t["xyz"]) == 3 and np.isfinite(t["xyz"]).all()
+    for im in ds["images"]:
+        obs = im["observations"]
+        assert len(obs) >= 8
+        names = [o["target"] for o in obs]
+        assert len(set(names)) == len(names), im["id"]
+        assert set(names) <= known
+        uv = np.array([o["uv"] for o in obs])
+        assert np.isfinite(uv).all()
+        assert (uv[:, 0] >= -0.5).all() and (uv[:, 0] <= w - 0.5).all()
+        assert (uv[:, 1] >= -0.5).all() and (uv[:, 1] <= h - 0.5).all()
+
+
+def test_determinism_and_seed_dependence():
+    opts = SimulationOptions(lens="kannala-brandt", fov_deg=150, blunder_rate=0.02, **SMALL)
+    a, b = simulate_room(opts), simulate_room(opts)
+    for key in ("dataset", "checkpoints", "truth"):
+        assert json.dumps(getattr(a, key)) == json.dumps(getattr(b, key))
+    c = simulate_room(opts, rng=np.random.default_rng(opts.seed))
+    assert json.dumps(c.dataset) == json.dumps(a.dataset)
+    d = simulate_room(SimulationOptions(lens="kannala-brandt", fov_deg=150, seed=1, **SMALL))
+    assert json.dumps(d.dataset) != json.dumps(a.dataset)
+
+
+@pytest.mark.parametrize(
+    "opts",
+    [
+        SimulationOptions(**SMALL),
+        nikon_like(n_images=10),
+        gopro_like(n_images=10, blunder_rate=0.05),
+        SimulationOptions(lens="unified", fov_deg=200, lens_options={"xi": 1.2}, **SMALL),
+    ],
+    ids=["default", "nikon", "gopro", "unified200"],
+)
+def test_dataset_format(opts):
+    sim = simulate_room(opts)
+    _check_dataset(sim.dataset)
+    assert len(sim.dataset["images"]) == opts.n_images
+    cp = sim.checkpoints
+    assert cp["format"] == "gtsam-sphere/checkpoints@1" and cp["units"] == "m"
+    ds_ids = {t["id"] for t in sim.dataset["targets"]}
+    assert {t["id"] for t in cp["targets"]} <= ds_ids
+    assert len(cp["targets"]) == min(opts.n_checkpoints, len(ds_ids))
+    assert sim.truth["format"] == "gtsam-sphere/truth@1"
+    json.dumps(sim.truth)  # JSON-ready
+
+
+def test_observations_match_truth_without_noise():
+    opts = SimulationOptions(lens="equisolid", fov_deg=190, noise_px=0.0, **SMALL)
+    sim = simulate_room(opts)
+    truth = sim.truth
+    xyz = {t["id"]: np.array(t["xyz"]) for t in truth["targets"]}
+    lens = lens_from_dict(truth["lens"])
+    for im, pose in zip(sim.dataset["images"], truth["images"], strict=True):
+        assert im["id"] == pose["id"]
+        r = np.array(pose["cam_from_world"]["R"])
+        t = np.array(pose["cam_from_world"]["t"])
+        assert np.allclose(r @ r.T, np.eye(3)) and np.linalg.det(r) == pytest.approx(1.0)
+        pts = np.array([xyz[o["target"]] for o in im["observations"]])
+        uv = np.array([o["uv"] for o in im["observations"]])
+        assert np.abs(lens.project(pts @ r.T + t) - uv).max() < 1e-9
+        # the camera centre is inside the room
+        centre = -r.T @ t
+        assert (centre > 0).all() and (centre < opts.room_size_m).all()
+
+
+def test_checkpoints_are_true_coordinates():
+    sim = simulate_room(SimulationOptions(n_checkpoints=191, **SMALL))
+    xyz = {t["id"]: t["xyz"] for t in sim.truth["targets"]}
+    for t in sim.checkpoints["targets"]:
+        assert t["xyz"] == xyz[t["id"]]
+
+
+@pytest.mark.parametrize(("rate", "seed"), [(0.0, 0), (0.05, 1), (0.1, 2), (0.013, 3)])
+def test_blunders_counted(rate, seed):
+    opts = SimulationOptions(blunder_rate=rate, seed=seed, noise_px=0.0, **SMALL)
+    sim = simulate_room(opts)
+    n_obs = sum(len(im["observations"]) for im in sim.dataset["images"])
+    blunders = sim.truth["blunders"]
+    assert len(blunders) == round(rate * n_obs)
+    kinds = [b["kind"] for b in blunders]
+    assert set(kinds) <= {"mislabel", "offset"}
+    if rate >= 0.05:
+        assert 0.3 < kinds.count("mislabel") / len(kinds) < 0.7
+    # blunders really are gross: they disagree with the true projection by > 5 px
+    lens = sim.lens
+    xyz = {t["id"]: np.array(t["xyz"]) for t in sim.truth["targets"]}
+    poses = {p["id"]: p["cam_from_world"] for p in sim.truth["images"]}
+    obs = {
+        (im["id"], o["target"]): o["uv"] for im in sim.dataset["images"] for o in im["observations"]
+    }
+    for b in blunders:
+        pose = poses[b["image"]]
+        p = np.array(pose["R"]) @ xyz[b["target"]] + pose["t"]
+        err = np.linalg.norm(lens.project(p[None])[0] - obs[(b["image"], b["target"])])
+        assert err > 5.0 or not np.isfinite(err)
+    # and the others are exact (noise_px = 0)
+    bad = {(b["image"], b["target"]) for b in blunders}
+    good = [k for k in obs if k not in bad][:200]
+    for image, target in good:
+        pose = poses[image]
+        p = np.array(pose["R"]) @ xyz[target] + pose["t"]
+        assert np.abs(lens.project(p[None])[0] - obs[(image, target)]).max() < 1e-9
+
+
+def test_portrait_and_landscape():
+    sim = simulate_room(SimulationOptions(**SMALL))
+    kinds = [im["orientation"] for im in sim.truth["images"]]
+    assert kinds.count("portrait") == kinds.count("landscape") == 6
+    for im in sim.truth["images"]:
+        r = np.array(im["cam_from_world"]["R"])
+        up_in_cam = r @ [0.0, 0.0, 1.0]  # world up seen from the camera
+        if im["orientation"] == "landscape":
+            assert abs(up_in_cam[1]) > abs(up_in_cam[0])  # up is along -v
+        else:
+            assert abs(up_in_cam[0]) > abs(up_in_cam[1])  # up is along u
+
+
+def test_sigma_modes():
+    base = dict(target_sigma_m=0.02, **SMALL)
+    weighted = simulate_room(SimulationOptions(sigma_mode="weighted", **base)).dataset
+    free = simulate_room(SimulationOptions(sigma_mode="free", **base)).dataset
+    fixed = simulate_room(SimulationOptions(sigma_mode="fixed", **base))
+    assert all(t["sigma"] == 0.02 for t in weighted["targets"])
+    assert all("sigma" not in t for t in free["targets"])
+    assert all(t["sigma"] == 0.0 for t in fixed.dataset["targets"])
+    true = {t["id"]: t["xyz"] for t in fixed.truth["targets"]}
+    assert all(t["xyz"] == true[t["id"]] for t in fixed.dataset["targets"])
+    diffs = np.array([np.subtract(t["xyz"], true[t["id"]]) for t in weighted["targets"]])
+    assert 0.015 < diffs.std() < 0.025
+    with pytest.raises(ValueError, match="sigma_mode"):
+        simulate_room(SimulationOptions(sigma_mode="loose", **SMALL))
+
+
+@pytest.mark.parametrize("fov", [200.0, 300.0])
+def test_sphere_lens_sees_behind(fov):
+    sim = simulate_room(SimulationOptions(lens="sphere", fov_deg=fov, **SMALL))
+    stats = sim.truth["statistics"]
+    assert stats["n_observations_beyond_90deg"] > 0
+    assert 90.0 < stats["max_incidence_deg"] <= fov / 2 + 1e-9
+    _check_dataset(sim.dataset)
+
+
+def test_imperfections_and_presets():
+    nikon, gopro = nikon_like(), gopro_like()
+    assert (nikon.n_images, nikon.fov_deg, nikon.lens) == (44, 75.0, "pinhole")
+    assert gopro.n_images == 52 and gopro.fov_deg == 150.0
+    sim = simulate_room(gopro_like(n_images=6))
+    assert sim.truth["lens"]["kind"] == "error-field"
+    assert sim.truth["lens"]["lens"]["kind"] == "non-central"
+
+
+def test_targets_on_room_surfaces():
+    opts = SimulationOptions(**SMALL)
+    sim = simulate_room(opts)
+    xyz = np.array([t["xyz"] for t in sim.truth["targets"]])
+    assert len(xyz) == opts.n_targets
+    size = np.array(opts.room_size_m)
+    on_face = np.isclose(xyz, 0.0).any(axis=1) | np.isclose(xyz, size).any(axis=1)
+    assert on_face.all()
+    faces = {t["face"] for t in sim.truth["targets"]}
+    assert len(faces) == 6
+
+
+def test_write_simulation_and_cli(tmp_path, capsys):
+    sim = simulate_room(SimulationOptions(**SMALL))
+    paths = write_simulation(sim, tmp_path / "a")
+    for key, path in paths.items():
+        assert json.loads(path.read_text()) == json.loads(json.dumps(getattr(sim, key)))
+    assert sorted(p.name for p in (tmp_path / "a").iterdir()) == [
+        "checkpoints.json",
+        "dataset.json",
+        "truth.json",
+    ]
+    parser = add_cli_arguments(argparse.ArgumentParser())
+    args = parser.parse_args(
+        ["--lens", "sphere", "--fov-deg", "220", "--n-images", "8", "--width", "800"]
+        + ["--height", "600", "--blunder-rate", "0.02", "--sigma-mode", "free"]
+        + ["--seed", "5", "-o", str(tmp_path / "b")]
+    )
+    assert run_cli(args) == 0
+    out = capsys.readouterr().out
+    assert "images 8" in out and "max incidence" in out
+    ds = json.loads((tmp_path / "b" / "dataset.json").read_text())
+    _check_dataset(ds)
+    assert all("sigma" not in t for t in ds["targets"])
+    bad = parser.parse_args(["--lens", "pinhole", "--fov-deg", "190", "-o", str(tmp_path / "c")])
+    assert run_cli(bad) == 2
