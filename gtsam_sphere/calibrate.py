@@ -67,6 +67,8 @@ class CalibrationOptions:
     points_per_factor: int = 4
     seed: int = 0
     knn: dict = field(default_factory=dict)
+    fixed_intrinsics: tuple[float, ...] | None = None
+    covariance: bool = True
 
     def __post_init__(self):
         self.model = Model(self.model)
@@ -156,6 +158,71 @@ def adjust(
     return Adjustment(result.values, res, w, result, problem.noise.sigma_px)
 
 
+def repair_poses(
+    problem: BundleProblem,
+    adj: Adjustment,
+    dataset: Dataset,
+    rng: np.random.Generator,
+    say: Callable[[str], None],
+    max_rounds: int = 2,
+) -> list[int]:
+    """Re-resect images whose pose converged to a wrong minimum, in ``adj.values``.
+
+    An image is suspect when the median of its residual norms exceeds
+    ``5 * sigma``: a wrong initial pose (P3P ambiguity, mislabelled targets)
+    that the adjustment could not leave. Its pose is recomputed by P3P +
+    RANSAC on bearings from the now-calibrated camera and the adjusted
+    targets; the caller adjusts again. Returns the image indices changed.
+    """
+    from .p3p import ransac_pose
+
+    theta = adj.values.atVector(INTRINSICS_KEY)
+    camera = SphereCamera(
+        dataset.width,
+        dataset.height,
+        float(theta[0]),
+        float(theta[1]),
+        float(theta[2]),
+        brown=dict(zip(problem.brown_names, map(float, theta[3:]))),
+        brown_scale_px=problem.brown_scale_px,
+    )
+    r = np.linalg.norm(adj.residuals_px, axis=1)
+    xyz = problem.target_xyz.copy()
+    for j in problem.free_targets:
+        xyz[j] = adj.values.atPoint3(point_key(int(j)))
+    changed = []
+    threshold = 5.0 * adj.sigma_px
+    for i in np.unique(problem.obs_image):
+        m = problem.obs_image == i
+        if np.median(r[m]) <= threshold:
+            continue
+        rays = camera.unproject(problem.corrected_uv_px[m])
+        ok = np.all(np.isfinite(rays), axis=1)
+        if ok.sum() < 4:
+            continue
+        thr_rad = max(3.0 * threshold / camera.c, 1e-3)
+        best = ransac_pose(rays[ok], xyz[problem.obs_target[m]][ok], thr_rad, rng)
+        if not best.success:
+            say(
+                f"  image {dataset.image_ids[i]}: residuals {np.median(r[m]):.1f} px, "
+                f"re-resection failed ({best.reason})"
+            )
+            continue
+        old = adj.values.atPose3(pose_key(int(i)))
+        new = gtsam.Pose3(gtsam.Rot3(best.R), gtsam.Point3(*best.t)).inverse()
+        adj.values.update(pose_key(int(i)), new)
+        res_new = problem.residuals_px(adj.values)[m]
+        if np.median(np.linalg.norm(res_new, axis=1)) < np.median(r[m]):
+            changed.append(int(i))
+            say(
+                f"  image {dataset.image_ids[i]}: median residual {np.median(r[m]):.1f} px, "
+                f"re-resected ({best.n_inliers} of {m.sum()} inliers)"
+            )
+        else:
+            adj.values.update(pose_key(int(i)), old)
+    return changed
+
+
 def initial_principal_distance(
     uv_px: np.ndarray, points_cam: np.ndarray, principal_point_px: np.ndarray
 ) -> float:
@@ -233,7 +300,7 @@ def calibrate(
     c0 = initial_principal_distance(dataset.uv_px, pc, pp)
     say(f"initial principal distance c = {c0:.1f} px")
 
-    brown_names = options.brown_terms if options.model is Model.BROWN else ()
+    brown_names = options.brown_terms if options.model.uses_brown else ()
     problem = BundleProblem(
         obs_image=dataset.obs_image,
         obs_target=dataset.obs_target,
@@ -245,11 +312,16 @@ def calibrate(
         brown_scale_px=0.5 * max(dataset.width, dataset.height),
         noise=NoiseOptions(options.sigma_px or 1.0, options.loss, options.loss_threshold),
         points_per_factor=options.points_per_factor,
+        fixed_intrinsics=None
+        if options.fixed_intrinsics is None
+        else np.asarray(options.fixed_intrinsics, float),
     )
     world_from_cam = [
         gtsam.Pose3(gtsam.Rot3(R), gtsam.Point3(*t)).inverse() for R, t in zip(init_R, init_t)
     ]
     theta0 = np.concatenate([pp, [c0], np.zeros(len(brown_names))])
+    if problem.fixed_intrinsics is not None:
+        theta0 = problem.fixed_intrinsics.copy()
     values = initial_values(problem, world_from_cam, theta0)
     opt = OptimizerOptions(options.optimizer, options.max_iterations)
     say(
@@ -257,14 +329,41 @@ def calibrate(
         f"{dataset.n_observations} observations, datum {problem.datum.value}"
     )
     adj = adjust(problem, values, opt, say, estimate_sigma=options.sigma_px is None)
+    repaired = repair_poses(problem, adj, dataset, rng, say)
+    if repaired:
+        adj = adjust(problem, adj.values, opt, say, estimate_sigma=options.sigma_px is None)
     history = adj.result.history
     correction = None
-    if options.model is Model.SPHERE_KNN:
+    if options.model.uses_knn:
         from .correct import grey_box_loop
 
         adj, correction, history = grey_box_loop(problem, adj, opt, options, say)
 
-    return _result(dataset, problem, adj, correction, history, options, n_input_images)
+    sigma_theta = None
+    if options.covariance and problem.fixed_intrinsics is None:
+        say("computing the precision of the intrinsics (marginal covariance)")
+        sigma_theta = intrinsics_sigma(problem, adj.values)
+    calib = _result(dataset, problem, adj, correction, history, options, n_input_images)
+    if sigma_theta is not None:
+        calib.statistics["intrinsics_sigma"] = dict(
+            zip(problem.intrinsics_names(), map(float, sigma_theta))
+        )
+    return calib
+
+
+def intrinsics_sigma(problem: BundleProblem, values: gtsam.Values) -> np.ndarray | None:
+    """Standard deviations of the intrinsics from ``gtsam.Marginals`` (px / dimensionless).
+
+    The graph is whitened with the estimated ``sigma_px`` and robust weights,
+    so this is the a-posteriori precision. ``None`` if the system is singular.
+    """
+    graph = problem.build()
+    try:
+        marginals = gtsam.Marginals(graph, values)
+        cov = marginals.marginalCovariance(INTRINSICS_KEY)
+    except RuntimeError:
+        return None
+    return np.sqrt(np.diag(cov))
 
 
 def _result(dataset, problem, adj, correction, history, options, n_input_images) -> Calibration:
@@ -353,6 +452,14 @@ def _result(dataset, problem, adj, correction, history, options, n_input_images)
             {"image": i, "target": tg, "reason": why} for i, tg, why in dataset.dropped
         ],
         "history": history,
+        "observations": {
+            "image": [ids[i] for i in dataset.obs_image],
+            "target": [tids[j] for j in dataset.obs_target],
+            "uv_px": dataset.uv_px,
+            "residual_px": res,
+            "weight": adj.weights,
+            "incidence_deg": inc,
+        },
         "options": {
             k: (str(v) if not isinstance(v, (int, float, dict, tuple, list)) else v)
             for k, v in asdict(options).items()

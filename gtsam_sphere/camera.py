@@ -36,6 +36,17 @@ class Model(enum.StrEnum):
     SPHERE = "sphere"
     SPHERE_KNN = "sphere+knn"
     BROWN = "brown"
+    BROWN_KNN = "brown+knn"
+
+    @property
+    def uses_brown(self) -> bool:
+        """The graph estimates Brown additional parameters."""
+        return self in (Model.BROWN, Model.BROWN_KNN)
+
+    @property
+    def uses_knn(self) -> bool:
+        """A kNN correction is learned from the residuals (the grey-box loop)."""
+        return self in (Model.SPHERE_KNN, Model.BROWN_KNN)
 
 
 class Correction(Protocol):

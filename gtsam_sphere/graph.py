@@ -289,6 +289,7 @@ class BundleProblem:
     points_per_factor: int = 4
     corrections_px: np.ndarray | None = None
     datum_sigma_scale: float = 1e-3
+    fixed_intrinsics: np.ndarray | None = None
 
     def __post_init__(self):
         if self.corrections_px is None:
@@ -379,6 +380,10 @@ class BundleProblem:
                         gtsam.noiseModel.Isotropic.Sigma(3, sig[t]),
                     )
                 )
+        if self.fixed_intrinsics is not None:
+            theta = np.asarray(self.fixed_intrinsics, float)
+            noise = gtsam.noiseModel.Isotropic.Sigma(len(theta), 1e-9)
+            graph.add(gtsam.PriorFactorVector(INTRINSICS_KEY, theta, noise))
         if self.datum is Datum.FREE:
             xyz = self.target_xyz[self.free_targets]
             extent = float(np.linalg.norm(xyz.max(0) - xyz.min(0))) or 1.0
@@ -411,9 +416,9 @@ class BundleProblem:
 
     def n_unknowns(self) -> int:
         """Number of estimated parameters (6 per pose, 3 per free target, intrinsics)."""
-        return (
-            6 * len(np.unique(self.obs_image))
-            + 3 * len(self.free_targets)
-            + 3
-            + len(self.brown_names)
-        )
+        n_theta = 0 if self.fixed_intrinsics is not None else 3 + len(self.brown_names)
+        return 6 * len(np.unique(self.obs_image)) + 3 * len(self.free_targets) + n_theta
+
+    def intrinsics_names(self) -> list[str]:
+        """Names of the intrinsics vector's entries."""
+        return ["xp_px", "yp_px", "c_px", *self.brown_names]

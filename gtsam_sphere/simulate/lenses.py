@@ -933,7 +933,10 @@ def make_lens(
     params.setdefault("cx", (width - 1) / 2.0)
     params.setdefault("cy", (height - 1) / 2.0)
     half = math.radians(fov_deg / 2.0)
-    if fill == "circle" and "max_angle_deg" not in options:
+    # A lens sees no further than fov/2. The sphere lens folds rays past 90 deg back onto
+    # the image disc, so without this cap a "120 deg" sphere lens would also image the
+    # targets behind it.
+    if (fill == "circle" or kind == "sphere") and "max_angle_deg" not in options:
         default_cap = {fl.name: fl.default for fl in fields(cls)}["max_angle_deg"]
         params["max_angle_deg"] = min(default_cap, fov_deg / 2.0)
     if kind == "sphere" and fov_deg > 180.0:

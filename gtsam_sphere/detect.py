@@ -1,0 +1,1058 @@
+"""Automatic calibration-target detection producing ``gtsam-sphere/dataset@1`` files.
+
+Supported targets
+-----------------
+``chessboard:COLSxROWS:SQUARE``
+    A plain chessboard with ``COLS x ROWS`` *inner* corners (OpenCV's ``patternSize``)
+    and squares of ``SQUARE`` metres. Target ids are ``"C000"``, ``"C001"``, ... in
+    row-major order; corner ``C{r*COLS+c:03d}`` sits at board coordinates
+    ``(c*SQUARE, r*SQUARE, 0)``.
+``charuco:SXxSY:SQUARE:MARKER:DICT``
+    An OpenCV ChArUco board of ``SX x SY`` squares. Target ids are ``"C{id:03d}"`` with
+    OpenCV's ChArUco corner ids and OpenCV's board coordinates.
+``aruco:DICT:MARKER``
+    Individual ArUco markers of side ``MARKER`` metres spread over a scene. Each marker
+    gives the target ``"M{id}"`` (its centre, the intersection of the image diagonals
+    of its outline) and ``"M{id}_{k}"`` (its corners ``k = 0..3`` in OpenCV order). Only
+    the centres can become dataset targets: their approximate coordinates come from a
+    survey CSV (``id,X,Y,Z[,sigma]``).
+
+Conventions (see ``spec/dataset.md``): pixels ``(u, v)`` with ``(0, 0)`` the centre of
+the top-left pixel, ``u`` right, ``v`` down; board frame in metres with the board in
+the plane ``z = 0``; camera frame ``x`` right, ``y`` down, ``z`` forward.
+
+Chessboard ordering
+-------------------
+A chessboard whose inner-corner counts ``COLS + ROWS`` is even (e.g. 4x6, 8x6) looks
+identical after a 180 degree rotation, and a square one (``COLS == ROWS``) also after
+90 degrees, so the detector's corner order is ambiguous. Ids are made consistent as
+follows: (1) the order is made right-handed in the image (board ``x`` cross board
+``y`` points away from the camera, i.e. the board is seen from its printed side);
+(2) if the colour pattern breaks the symmetry (``COLS + ROWS`` odd), the rotation
+that puts a *dark* square between ``C000`` and its neighbours is chosen; (3)
+otherwise the rotation whose ``C000`` is nearest to the image's top-left corner
+(smallest ``u + v``) is chosen.
+
+Limitation: for symmetric boards rule (3) depends on the view, so if the camera
+rolls by more than about 90 degrees relative to the board between images, the same
+physical corner can receive different ids in different images. This is harmless for
+an intrinsic calibration with one free pose per image (the relabelled corners are
+the board seen with a pose rotated by 180 degrees about its normal), but it breaks
+any method that assumes one board pose shared by several images (e.g. a static
+board seen by a moving rig). Use a ChArUco board or an asymmetric chessboard then.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import os
+import sys
+import tempfile
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+__all__ = [
+    "BoardSpec",
+    "DetectionReport",
+    "add_cli_arguments",
+    "detect_image",
+    "detect_images",
+    "read_markers_csv",
+    "refine_predicted_corners",
+    "render_board_image",
+    "run_cli",
+]
+
+DATASET_FORMAT = "gtsam-sphere/dataset@1"
+
+
+# --------------------------------------------------------------------------------------
+# Board specification
+# --------------------------------------------------------------------------------------
+
+
+def _parse_dims(text: str, what: str) -> tuple[int, int]:
+    parts = text.lower().split("x")
+    if len(parts) != 2:
+        raise ValueError(f"bad {what} {text!r}: expected 'NxM', e.g. '4x6'")
+    try:
+        a, b = int(parts[0]), int(parts[1])
+    except ValueError:
+        raise ValueError(f"bad {what} {text!r}: expected two integers 'NxM'") from None
+    if a < 1 or b < 1:
+        raise ValueError(f"bad {what} {text!r}: both counts must be >= 1")
+    return a, b
+
+
+def _parse_length(text: str, what: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise ValueError(f"bad {what} {text!r}: expected a length in metres") from None
+    if not np.isfinite(value) or value <= 0:
+        raise ValueError(f"bad {what} {text!r}: must be a positive length in metres")
+    return value
+
+
+def _parse_dictionary(text: str) -> int:
+    name = text.upper()
+    if not name.startswith("DICT_") or not hasattr(cv2.aruco, name):
+        known = sorted(n for n in dir(cv2.aruco) if n.startswith("DICT_"))
+        raise ValueError(f"bad ArUco dictionary {text!r}: expected one of {', '.join(known)}")
+    return int(getattr(cv2.aruco, name))
+
+
+@dataclass
+class BoardSpec:
+    """Description of a calibration target.
+
+    Attributes
+    ----------
+    kind : str
+        ``"chessboard"``, ``"charuco"`` or ``"aruco"``.
+    cols, rows : int
+        Chessboard: inner corners per row / number of rows (OpenCV ``patternSize``).
+        ChArUco: squares along x / y. ArUco: unused (0).
+    square_m : float
+        Side of a square in metres (chessboard, ChArUco); 0 for ArUco.
+    marker_m : float
+        Side of an ArUco marker in metres (ChArUco, ArUco); 0 for chessboards.
+    dictionary : str
+        ArUco dictionary name, e.g. ``"DICT_4X4_50"`` (ChArUco, ArUco); ``""`` otherwise.
+    text : str
+        The specification string the board was parsed from.
+    """
+
+    kind: str
+    cols: int = 0
+    rows: int = 0
+    square_m: float = 0.0
+    marker_m: float = 0.0
+    dictionary: str = ""
+    text: str = ""
+    _charuco: object = field(default=None, repr=False, compare=False)
+
+    @classmethod
+    def parse(cls, text: str) -> BoardSpec:
+        """Parse a board specification string.
+
+        Parameters
+        ----------
+        text : str
+            ``"chessboard:COLSxROWS:SQUARE_M"`` (inner corners),
+            ``"charuco:SXxSY:SQUARE_M:MARKER_M:DICT"`` (squares) or
+            ``"aruco:DICT:MARKER_M"``.
+
+        Returns
+        -------
+        BoardSpec
+
+        Raises
+        ------
+        ValueError
+            With a message naming the offending part of ``text``.
+        """
+        parts = [p.strip() for p in str(text).strip().split(":")]
+        kind = parts[0].lower()
+        if kind == "chessboard":
+            if len(parts) != 3:
+                raise ValueError(
+                    f"bad board {text!r}: expected 'chessboard:COLSxROWS:SQUARE_M' "
+                    "(inner corners, square side in metres)"
+                )
+            cols, rows = _parse_dims(parts[1], "chessboard size")
+            if cols < 2 or rows < 2:
+                raise ValueError(f"bad chessboard size {parts[1]!r}: need >= 2x2 inner corners")
+            square = _parse_length(parts[2], "square size")
+            return cls("chessboard", cols, rows, square, text=str(text))
+        if kind == "charuco":
+            if len(parts) != 5:
+                raise ValueError(
+                    f"bad board {text!r}: expected 'charuco:SXxSY:SQUARE_M:MARKER_M:DICT' "
+                    "(squares, lengths in metres)"
+                )
+            sx, sy = _parse_dims(parts[1], "ChArUco size")
+            if sx < 2 or sy < 2:
+                raise ValueError(f"bad ChArUco size {parts[1]!r}: need >= 2x2 squares")
+            square = _parse_length(parts[2], "square size")
+            marker = _parse_length(parts[3], "marker size")
+            if marker >= square:
+                raise ValueError(
+                    f"bad marker size {parts[3]!r}: must be smaller than the square ({parts[2]})"
+                )
+            _parse_dictionary(parts[4])
+            return cls("charuco", sx, sy, square, marker, parts[4].upper(), text=str(text))
+        if kind == "aruco":
+            if len(parts) != 3:
+                raise ValueError(f"bad board {text!r}: expected 'aruco:DICT:MARKER_M'")
+            _parse_dictionary(parts[1])
+            marker = _parse_length(parts[2], "marker size")
+            return cls("aruco", marker_m=marker, dictionary=parts[1].upper(), text=str(text))
+        raise ValueError(
+            f"bad board kind {parts[0]!r} in {text!r}: expected 'chessboard', 'charuco' or 'aruco'"
+        )
+
+    # -- helpers -------------------------------------------------------------------
+
+    def aruco_dictionary(self):
+        """Return the ``cv2.aruco.Dictionary`` of a ChArUco/ArUco target."""
+        return cv2.aruco.getPredefinedDictionary(_parse_dictionary(self.dictionary))
+
+    def charuco_board(self):
+        """Return (and cache) the ``cv2.aruco.CharucoBoard`` of a ChArUco target."""
+        if self.kind != "charuco":
+            raise ValueError(f"board {self.text!r} is not a ChArUco board")
+        if self._charuco is None:
+            self._charuco = cv2.aruco.CharucoBoard(
+                (self.cols, self.rows), self.square_m, self.marker_m, self.aruco_dictionary()
+            )
+        return self._charuco
+
+    def object_points_m(self) -> dict[str, np.ndarray]:
+        """Board-frame coordinates of every target of a printed board.
+
+        Returns
+        -------
+        dict of str to ndarray, shape (3,)
+            Target id -> ``(x, y, 0)`` in metres, board frame (``x`` along a row of
+            corners, ``y`` down the rows, board plane ``z = 0``). Empty for ``"aruco"``
+            (markers spread over a scene have no board frame; use a markers CSV).
+        """
+        if self.kind == "chessboard":
+            out = {}
+            for r in range(self.rows):
+                for c in range(self.cols):
+                    xyz = np.array([c * self.square_m, r * self.square_m, 0.0])
+                    out[f"C{r * self.cols + c:03d}"] = xyz
+            return out
+        if self.kind == "charuco":
+            pts = np.asarray(self.charuco_board().getChessboardCorners(), dtype=float)
+            # OpenCV stores float32: snap to the exact multiples of the square size.
+            grid = np.round(pts[:, :2] / self.square_m) * self.square_m
+            return {f"C{i:03d}": np.array([g[0], g[1], 0.0]) for i, g in enumerate(grid)}
+        return {}
+
+    def corner_count(self) -> int:
+        """Number of corner targets on the board (0 for ``"aruco"``)."""
+        if self.kind == "chessboard":
+            return self.cols * self.rows
+        if self.kind == "charuco":
+            return (self.cols - 1) * (self.rows - 1)
+        return 0
+
+
+# --------------------------------------------------------------------------------------
+# Single-image detection
+# --------------------------------------------------------------------------------------
+
+
+def _to_gray(image: np.ndarray) -> np.ndarray:
+    img = np.asarray(image)
+    if img.ndim == 3:
+        img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY if img.shape[2] == 3 else cv2.COLOR_BGRA2GRAY)
+    if img.dtype != np.uint8:
+        lo, hi = float(np.nanmin(img)), float(np.nanmax(img))
+        scale = 255.0 / (hi - lo) if hi > lo else 1.0
+        img = np.clip((img.astype(np.float64) - lo) * scale, 0, 255).astype(np.uint8)
+    return np.ascontiguousarray(img)
+
+
+def _min_spacing(grid: np.ndarray) -> float:
+    """Smallest distance between neighbouring corners of a (rows, cols, 2) grid."""
+    d = []
+    if grid.shape[1] > 1:
+        d.append(np.linalg.norm(np.diff(grid, axis=1), axis=2).ravel())
+    if grid.shape[0] > 1:
+        d.append(np.linalg.norm(np.diff(grid, axis=0), axis=2).ravel())
+    return float(np.min(np.concatenate(d))) if d else 10.0
+
+
+def _subpix(gray: np.ndarray, pts: np.ndarray, half_win: int) -> np.ndarray:
+    crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 100, 1e-4)
+    p = np.ascontiguousarray(pts.reshape(-1, 1, 2).astype(np.float32))
+    p = cv2.cornerSubPix(gray, p, (half_win, half_win), (-1, -1), crit)
+    return p.reshape(-1, 2).astype(np.float64)
+
+
+def _saddle_refine(
+    gray: np.ndarray, pts: np.ndarray, radius: int = 2, sigma: float = 1.0, max_move: float = 3.0
+) -> np.ndarray:
+    """Polish X-corner positions by fitting a quadratic saddle to the smoothed image.
+
+    The image is smoothed with a Gaussian (``sigma`` pixels); around each estimate a
+    quadratic ``f = a x^2 + b xy + c y^2 + d x + e y + g`` is fitted (Gaussian-weighted
+    least squares over a ``(2 radius + 1)^2`` grid resampled at the estimate) and the
+    estimate moves to its stationary point; repeated until the step is below 1e-4 px.
+    Unlike ``cornerSubPix`` this needs only a few pixels around the corner, so curved
+    fisheye edges and nearby ChArUco markers do not bias it. Points that are not saddles
+    (``4ac - b^2 >= 0``) or that would move more than ``max_move`` pixels keep their input
+    position.
+
+    Parameters
+    ----------
+    gray : ndarray, shape (H, W)
+        Grey image.
+    pts : ndarray, shape (N, 2)
+        Initial positions ``(u, v)`` in pixels.
+
+    Returns
+    -------
+    ndarray, shape (N, 2)
+        Refined positions in pixels.
+    """
+    pts = np.asarray(pts, dtype=np.float64).reshape(-1, 2)
+    if len(pts) == 0:
+        return pts.copy()
+    g = cv2.GaussianBlur(gray.astype(np.float32), (0, 0), sigma)
+    off = np.arange(-radius, radius + 1, dtype=np.float64)
+    xx, yy = (a.ravel() for a in np.meshgrid(off, off))
+    design = np.stack([xx * xx, xx * yy, yy * yy, xx, yy, np.ones_like(xx)], axis=1)
+    w = np.exp(-(xx**2 + yy**2) / (2.0 * radius**2))
+    solver = np.linalg.pinv(design * w[:, None])  # (6, K)
+    grid = np.stack([xx, yy], axis=1)
+    out = pts.copy()
+    good = np.ones(len(pts), dtype=bool)
+    for _ in range(20):
+        m = (out[:, None, :] + grid[None]).reshape(-1, 1, 2).astype(np.float32)
+        vals = cv2.remap(g, m[..., 0], m[..., 1], cv2.INTER_CUBIC, None, cv2.BORDER_REPLICATE)
+        vals = vals.reshape(len(out), -1).astype(np.float64)
+        a, b, c, d, e, _ = solver @ (vals * w[None]).T
+        det = 4.0 * a * c - b * b
+        good &= det < 0
+        with np.errstate(divide="ignore", invalid="ignore"):
+            step = np.stack([(b * e - 2.0 * c * d) / det, (b * d - 2.0 * a * e) / det], axis=1)
+        step = np.where(np.isfinite(step) & good[:, None], np.clip(step, -0.5, 0.5), 0.0)
+        out += step
+        if np.max(np.abs(step)) < 1e-4:
+            break
+    bad = ~good | (np.linalg.norm(out - pts, axis=1) > max_move)
+    out[bad] = pts[bad]
+    return out
+
+
+def _sample(gray: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Bilinear samples of ``gray`` at pixel positions ``uv`` (N, 2)."""
+    m = np.ascontiguousarray(uv.reshape(-1, 1, 2).astype(np.float32))
+    vals = cv2.remap(
+        gray.astype(np.float32), m[..., 0], m[..., 1], cv2.INTER_LINEAR, cv2.BORDER_REPLICATE
+    )
+    return vals.ravel().astype(np.float64)
+
+
+def _orient_chessboard(gray: np.ndarray, grid: np.ndarray) -> np.ndarray:
+    """Apply the consistent-ordering rule (module docstring) to a (rows, cols, 2) grid."""
+    rows, cols = grid.shape[:2]
+    # (1) right-handed: image of board x cross image of board y > 0 (u right, v down).
+    ex = grid[:, -1].mean(axis=0) - grid[:, 0].mean(axis=0)
+    ey = grid[-1].mean(axis=0) - grid[0].mean(axis=0)
+    if ex[0] * ey[1] - ex[1] * ey[0] < 0:
+        grid = grid[:, ::-1]
+    candidates = [grid, grid[::-1, ::-1]]
+    if rows == cols:  # 90 degree rotations keep the handedness
+        rot = np.transpose(grid, (1, 0, 2))[:, ::-1]
+        candidates += [rot, rot[::-1, ::-1]]
+    if (rows + cols) % 2 == 1:
+        # (2) colour breaks the symmetry: C000-C001-C010-C011 must enclose a dark square.
+        def dark_first(g: np.ndarray) -> float:
+            c_in = g[:2, :2].reshape(-1, 2).mean(axis=0)  # square (1,1): dark
+            c_nb = g[:2, 1:3].reshape(-1, 2).mean(axis=0)  # square (1,2): light
+            return float(np.diff(_sample(gray, np.array([c_in, c_nb])))[0])
+
+        return max(candidates, key=dark_first)
+    # (3) symmetric: C000 nearest the image's top-left corner.
+    return min(candidates, key=lambda g: float(g[0, 0].sum()))
+
+
+def _detect_chessboard(gray: np.ndarray, board: BoardSpec, attempts: int) -> dict[str, np.ndarray]:
+    size = (board.cols, board.rows)
+    corners = None
+    flags_sb = cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY
+    # findChessboardCornersSB draws random numbers: seed it for reproducible results and
+    # retry with other seeds and with image normalisation (on the real fisheye test
+    # images single calls fail on some images that later attempts find).
+    for attempt in range(max(1, int(attempts))):
+        for extra in (0, cv2.CALIB_CB_NORMALIZE_IMAGE):
+            cv2.setRNGSeed(attempt)
+            ok, c = cv2.findChessboardCornersSB(gray, size, flags=flags_sb | extra)
+            if ok and c is not None:
+                corners = np.asarray(c, dtype=np.float64).reshape(-1, 2)
+                break
+        if corners is not None:
+            corners = _saddle_refine(gray, corners)
+            break
+    else:
+        flags = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
+        ok, c = cv2.findChessboardCorners(gray, size, flags=flags)
+        if ok and c is not None:
+            c = np.asarray(c, dtype=np.float64).reshape(board.rows, board.cols, 2)
+            half = int(np.clip(0.3 * _min_spacing(c), 2, 11))
+            corners = _saddle_refine(gray, _subpix(gray, c.reshape(-1, 2), half))
+    if corners is None or len(corners) != board.cols * board.rows:
+        return {}
+    grid = _orient_chessboard(gray, corners.reshape(board.rows, board.cols, 2))
+    flat = grid.reshape(-1, 2)
+    return {f"C{i:03d}": flat[i].copy() for i in range(len(flat))}
+
+
+def _aruco_parameters():
+    params = cv2.aruco.DetectorParameters()
+    params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
+    params.cornerRefinementWinSize = 5
+    params.cornerRefinementMaxIterations = 100
+    params.cornerRefinementMinAccuracy = 0.001
+    return params
+
+
+def _detect_charuco(gray: np.ndarray, board: BoardSpec) -> dict[str, np.ndarray]:
+    cb = board.charuco_board()
+    cparams = cv2.aruco.CharucoParameters()
+    cparams.minMarkers = 1
+    detector = cv2.aruco.CharucoDetector(cb, cparams, _aruco_parameters())
+    ch_corners, ch_ids, _, _ = detector.detectBoard(gray)
+    if ch_ids is None or ch_corners is None or len(ch_ids) == 0:
+        return {}
+    pts = np.asarray(ch_corners, dtype=np.float64).reshape(-1, 2)
+    ids = np.asarray(ch_ids).ravel().astype(int)
+    # OpenCV refines with a fixed cornerSubPix window that the markers and curved
+    # fisheye edges bias (0.1-0.5 px on rendered boards): polish with a local saddle fit.
+    refined = _saddle_refine(gray, pts)
+    return {f"C{i:03d}": refined[k] for k, i in enumerate(ids)}
+
+
+def _detect_aruco(gray: np.ndarray, board: BoardSpec) -> dict[str, np.ndarray]:
+    detector = cv2.aruco.ArucoDetector(board.aruco_dictionary(), _aruco_parameters())
+    corners, ids, _ = detector.detectMarkers(gray)
+    out: dict[str, np.ndarray] = {}
+    if ids is None:
+        return out
+    for quad, mid in zip(corners, np.asarray(ids).ravel(), strict=True):
+        q = np.asarray(quad, dtype=np.float64).reshape(4, 2)
+        key = f"M{int(mid)}"
+        if key in out:  # the same id twice in one image is ambiguous: drop both
+            out[key] = np.array([np.nan, np.nan])
+            continue
+        out[key] = _diagonal_intersection(q)
+        for k in range(4):
+            out[f"{key}_{k}"] = q[k].copy()
+    bad = {k.split("_")[0] for k, v in out.items() if not np.all(np.isfinite(v))}
+    return {k: v for k, v in out.items() if k.split("_")[0] not in bad}
+
+
+def _diagonal_intersection(q: np.ndarray) -> np.ndarray:
+    """Intersection of the diagonals 0-2 and 1-3 of a quadrilateral (4, 2)."""
+    p, r = q[0], q[2] - q[0]
+    s, d = q[1], q[3] - q[1]
+    den = r[0] * d[1] - r[1] * d[0]
+    if abs(den) < 1e-12:
+        return q.mean(axis=0)
+    t = ((s[0] - p[0]) * d[1] - (s[1] - p[1]) * d[0]) / den
+    return p + t * r
+
+
+def detect_image(gray: np.ndarray, board: BoardSpec, *, attempts: int = 3) -> dict[str, np.ndarray]:
+    """Detect the targets of ``board`` in one image.
+
+    Parameters
+    ----------
+    gray : ndarray, shape (H, W) or (H, W, 3)
+        Image (BGR images are converted to grey; non-uint8 images are rescaled).
+    board : BoardSpec
+        Target description.
+    attempts : int, optional
+        Chessboards: number of seeds tried with ``cv2.findChessboardCornersSB`` (each
+        with and without ``CALIB_CB_NORMALIZE_IMAGE``) before falling back to
+        ``cv2.findChessboardCorners``. The detector is seeded (``cv2.setRNGSeed``), so
+        results are reproducible; this resets OpenCV's global RNG.
+
+    Returns
+    -------
+    dict of str to ndarray, shape (2,)
+        Target id -> sub-pixel position ``(u, v)`` in pixels ((0, 0) = centre of the
+        top-left pixel). Empty when nothing is found. Chessboards are all-or-nothing
+        (every inner corner or none); ChArUco boards may be partial; ArUco markers give
+        ``"M{id}"`` (centre) and ``"M{id}_{k}"`` (corners).
+    """
+    g = _to_gray(gray)
+    if board.kind == "chessboard":
+        return _detect_chessboard(g, board, attempts)
+    if board.kind == "charuco":
+        return _detect_charuco(g, board)
+    if board.kind == "aruco":
+        return _detect_aruco(g, board)
+    raise ValueError(f"unknown board kind {board.kind!r}")
+
+
+# --------------------------------------------------------------------------------------
+# Peripheral recovery helper
+# --------------------------------------------------------------------------------------
+
+
+def saddle_score(gray: np.ndarray, uv: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
+    """Chessboard X-corner score from intensities on a ring around each point.
+
+    Around an X-corner the ring profile ``f(theta)`` satisfies ``f(theta + pi) = f(theta)``
+    and ``f(theta + pi/2) = -f(theta)`` (after removing its mean); the score is
+    ``(corr(f, f_180) - corr(f, f_90)) / 2``: about 1 at a saddle, about -1 or 0 on an
+    edge, a blob or noise.
+
+    Parameters
+    ----------
+    gray : ndarray, shape (H, W)
+        Grey image.
+    uv : ndarray, shape (N, 2)
+        Positions in pixels.
+    radius : float
+        Ring radius in pixels.
+
+    Returns
+    -------
+    score : ndarray, shape (N,)
+        Saddle score in [-1, 1].
+    contrast : ndarray, shape (N,)
+        Standard deviation of the ring intensities (grey levels).
+    """
+    uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+    n_ring = 32
+    theta = 2 * np.pi * np.arange(n_ring) / n_ring
+    radii = np.array([0.6 * radius, radius])
+    offs = np.concatenate([np.stack([r * np.cos(theta), r * np.sin(theta)], 1) for r in radii])
+    pts = uv[:, None, :] + offs[None]
+    f = _sample(np.asarray(gray), pts.reshape(-1, 2)).reshape(len(uv), len(radii), n_ring)
+    f = f - f.mean(axis=2, keepdims=True)
+    contrast = f.std(axis=2).mean(axis=1)
+
+    def corr(shift: int) -> np.ndarray:
+        g = np.roll(f, shift, axis=2)
+        num = (f * g).sum(axis=(1, 2))
+        den = np.sqrt((f * f).sum(axis=(1, 2)) * (g * g).sum(axis=(1, 2)))
+        return num / np.maximum(den, 1e-12)
+
+    score = 0.5 * (corr(n_ring // 2) - corr(n_ring // 4))
+    return score, contrast
+
+
+def refine_predicted_corners(
+    gray: np.ndarray,
+    predicted_uv_px: dict[str, np.ndarray],
+    window_px: int = 7,
+    *,
+    min_score: float = 0.5,
+    min_contrast: float = 8.0,
+) -> dict[str, np.ndarray]:
+    """Refine predicted chessboard-corner positions locally and keep the credible ones.
+
+    Meant for recovering corners the detector missed (e.g. at the fisheye periphery)
+    once a calibration predicts where they are. Each prediction is refined with
+    ``cv2.cornerSubPix`` in a window of about ``window_px`` pixels; it is rejected if the
+    refinement moved it by more than ``window_px / 2``, or if the refined point is not a
+    chessboard saddle (:func:`saddle_score` below ``min_score``, or ring contrast below
+    ``min_contrast`` grey levels), or if it falls outside the image.
+
+    Parameters
+    ----------
+    gray : ndarray, shape (H, W) or (H, W, 3)
+        Image.
+    predicted_uv_px : dict of str to array_like, shape (2,)
+        Target id -> predicted ``(u, v)`` in pixels.
+    window_px : int, optional
+        Full side of the refinement window in pixels (>= 5); ``cornerSubPix`` uses the
+        half-size ``window_px // 2``.
+    min_score : float, optional
+        Minimum saddle score in [-1, 1].
+    min_contrast : float, optional
+        Minimum ring intensity standard deviation (grey levels, 0..255 image).
+
+    Returns
+    -------
+    dict of str to ndarray, shape (2,)
+        Accepted target id -> refined ``(u, v)`` in pixels.
+    """
+    if window_px < 5:
+        raise ValueError(f"window_px={window_px} too small: need >= 5")
+    if not predicted_uv_px:
+        return {}
+    g = _to_gray(gray)
+    h, w = g.shape
+    keys = list(predicted_uv_px)
+    pred = np.array([np.asarray(predicted_uv_px[k], dtype=np.float64) for k in keys])
+    half = int(window_px // 2)
+    margin = half + 1
+    inside = (
+        np.all(np.isfinite(pred), axis=1)
+        & (pred[:, 0] >= margin)
+        & (pred[:, 0] <= w - 1 - margin)
+        & (pred[:, 1] >= margin)
+        & (pred[:, 1] <= h - 1 - margin)
+    )
+    out: dict[str, np.ndarray] = {}
+    if not np.any(inside):
+        return out
+    idx = np.flatnonzero(inside)
+    refined = _subpix(g, pred[idx], half)
+    moved = np.linalg.norm(refined - pred[idx], axis=1)
+    score, contrast = saddle_score(g, refined, radius=max(2.0, 0.5 * window_px))
+    ok = (moved <= 0.5 * window_px) & (score >= min_score) & (contrast >= min_contrast)
+    for j, i in enumerate(idx):
+        if ok[j]:
+            out[keys[i]] = refined[j]
+    return out
+
+
+# --------------------------------------------------------------------------------------
+# Many images -> dataset@1
+# --------------------------------------------------------------------------------------
+
+
+@dataclass
+class DetectionReport:
+    """What :func:`detect_images` found.
+
+    Attributes
+    ----------
+    used : list of (str, int)
+        ``(image id, number of observations)`` for every image written to the dataset.
+    skipped : list of (str, str)
+        ``(image path, reason)`` for every image left out.
+    unknown_markers : dict of str to int
+        ArUco target id -> number of detections dropped because the marker is not in the
+        markers CSV.
+    """
+
+    used: list[tuple[str, int]] = field(default_factory=list)
+    skipped: list[tuple[str, str]] = field(default_factory=list)
+    unknown_markers: dict[str, int] = field(default_factory=dict)
+
+    @property
+    def n_observations(self) -> int:
+        """Total number of observations written."""
+        return sum(n for _, n in self.used)
+
+    def summary(self) -> str:
+        """Human-readable multi-line summary."""
+        lines = [
+            f"images used: {len(self.used)}, skipped: {len(self.skipped)}, "
+            f"observations: {self.n_observations}"
+        ]
+        for name, n in self.used:
+            lines.append(f"  {name}: {n} corners")
+        for path, reason in self.skipped:
+            lines.append(f"  skipped {path}: {reason}")
+        if self.unknown_markers:
+            total = sum(self.unknown_markers.values())
+            ids = ", ".join(sorted(self.unknown_markers))
+            lines.append(f"  {total} marker detections not in the markers CSV: {ids}")
+        return "\n".join(lines)
+
+
+def read_markers_csv(path: str) -> dict[str, tuple[np.ndarray, float | None]]:
+    """Read surveyed marker centres.
+
+    Parameters
+    ----------
+    path : str
+        CSV file with rows ``id,X,Y,Z[,sigma]`` (object units, usually metres); a header
+        row and ``#`` comment lines are allowed.
+
+    Returns
+    -------
+    dict of str to (ndarray (3,), float or None)
+        ``"M{id}"`` -> (approximate centre coordinates, sigma or None when absent).
+
+    Raises
+    ------
+    ValueError
+        Naming the file and line of a malformed or duplicate row.
+    """
+    out: dict[str, tuple[np.ndarray, float | None]] = {}
+    with open(path, newline="") as fh:
+        for lineno, row in enumerate(csv.reader(fh), start=1):
+            cells = [c.strip() for c in row]
+            if not cells or not cells[0] or cells[0].startswith("#"):
+                continue
+            try:
+                mid = int(cells[0])
+            except ValueError:
+                if lineno == 1:  # header
+                    continue
+                raise ValueError(f"{path}:{lineno}: bad marker id {cells[0]!r}") from None
+            if len(cells) not in (4, 5):
+                raise ValueError(f"{path}:{lineno}: expected 'id,X,Y,Z[,sigma]', got {row!r}")
+            try:
+                xyz = np.array([float(c) for c in cells[1:4]])
+                sigma = float(cells[4]) if len(cells) == 5 and cells[4] else None
+            except ValueError:
+                raise ValueError(f"{path}:{lineno}: non-numeric value in {row!r}") from None
+            if not np.all(np.isfinite(xyz)) or (sigma is not None and not sigma >= 0):
+                raise ValueError(f"{path}:{lineno}: non-finite coordinate or bad sigma {row!r}")
+            key = f"M{mid}"
+            if key in out:
+                raise ValueError(f"{path}:{lineno}: duplicate marker id {mid}")
+            out[key] = (xyz, sigma)
+    return out
+
+
+def _progress(i: int, n: int, name: str) -> None:
+    width = 30
+    done = int(width * i / max(n, 1))
+    bar = "#" * done + "." * (width - done)
+    sys.stderr.write(f"\r[{bar}] {i}/{n} {name[:40]:<40}")
+    if i == n:
+        sys.stderr.write("\n")
+    sys.stderr.flush()
+
+
+def _image_ids(paths: list[str]) -> list[str]:
+    """Image ids: file stems, disambiguated by parent folders when needed."""
+    ids = [Path(p).stem for p in paths]
+    depth = 1
+    while len(set(ids)) < len(ids) and depth < 8:
+        ids = ["/".join(Path(p).with_suffix("").parts[-depth - 1 :]) for p in paths]
+        depth += 1
+    if len(set(ids)) < len(ids):
+        ids = [f"{i:04d}_{s}" for i, s in enumerate(ids)]
+    return ids
+
+
+def detect_images(
+    paths: list[str],
+    board: BoardSpec,
+    *,
+    progress: bool = True,
+    markers_csv: str | None = None,
+    min_points: int = 1,
+) -> tuple[dict, DetectionReport]:
+    """Detect ``board`` in many images and build a ``gtsam-sphere/dataset@1`` dataset.
+
+    Parameters
+    ----------
+    paths : list of str
+        Image files (all of the same size: one physical camera per dataset).
+    board : BoardSpec
+        Target description.
+    progress : bool, optional
+        Draw a text progress bar on stderr.
+    markers_csv : str, optional
+        For ``"aruco"`` targets: surveyed marker centres (see :func:`read_markers_csv`),
+        written as targets ``"M{id}"`` with their sigma (absent = approximate only).
+        Detections of markers not in the CSV are counted in
+        ``report.unknown_markers``. Required for ``"aruco"``.
+    min_points : int, optional
+        Images with fewer usable observations are skipped (and reported).
+
+    Returns
+    -------
+    dataset : dict
+        ``{"format": "gtsam-sphere/dataset@1", "units": "m", "camera": {"width",
+        "height"}, "targets": [...], "images": [...]}``; board targets carry
+        ``"sigma": 0`` and board-frame coordinates in metres, observations are pixel
+        positions ``(u, v)``.
+    report : DetectionReport
+        Per-image counts, skipped images with reasons, unknown markers.
+
+    Raises
+    ------
+    ValueError
+        If ``board`` is ``"aruco"`` without ``markers_csv``, or no image is usable.
+    """
+    report = DetectionReport()
+    survey = None
+    if board.kind == "aruco":
+        if markers_csv is None:
+            raise ValueError(
+                "ArUco marker detection needs --markers-csv (surveyed marker centres): "
+                "markers have no board frame"
+            )
+        survey = read_markers_csv(markers_csv)
+    elif markers_csv is not None:
+        raise ValueError(f"markers_csv is only used with 'aruco' targets, not {board.kind!r}")
+    board_points = board.object_points_m()
+    paths = [str(p) for p in paths]
+    ids = _image_ids(paths)
+    size: tuple[int, int] | None = None
+    images = []
+    used_targets: set[str] = set()
+    for i, (path, image_id) in enumerate(zip(paths, ids, strict=True)):
+        if progress:
+            _progress(i, len(paths), Path(path).name)
+        img = cv2.imread(path, cv2.IMREAD_GRAYSCALE)
+        if img is None:
+            report.skipped.append((path, "cannot read image"))
+            continue
+        hw = (img.shape[1], img.shape[0])
+        if size is None:
+            size = hw
+        elif hw != size:
+            report.skipped.append((path, f"size {hw[0]}x{hw[1]} differs from {size[0]}x{size[1]}"))
+            continue
+        found = detect_image(img, board)
+        obs = []
+        for key in sorted(found):
+            uv = found[key]
+            if survey is not None:
+                if "_" in key:
+                    continue  # marker corners have no surveyed coordinates
+                if key not in survey:
+                    report.unknown_markers[key] = report.unknown_markers.get(key, 0) + 1
+                    continue
+            elif key not in board_points:
+                continue
+            obs.append({"target": key, "uv": [float(uv[0]), float(uv[1])]})
+        if not found:
+            report.skipped.append((path, "no target found"))
+            continue
+        if len(obs) < max(1, min_points):
+            why = "no known target" if not obs else f"only {len(obs)} observations"
+            report.skipped.append((path, f"{why} (need >= {max(1, min_points)})"))
+            continue
+        used_targets.update(o["target"] for o in obs)
+        images.append({"id": image_id, "observations": obs})
+        report.used.append((image_id, len(obs)))
+    if progress and paths:
+        _progress(len(paths), len(paths), "done")
+    if not images:
+        raise ValueError(
+            f"no usable image among {len(paths)}: "
+            + "; ".join(f"{p}: {r}" for p, r in report.skipped[:5])
+        )
+    targets = []
+    for key in sorted(used_targets):
+        if survey is not None:
+            xyz, sigma = survey[key]
+            t = {"id": key, "xyz": [float(x) for x in xyz]}
+            if sigma is not None:
+                t["sigma"] = float(sigma)
+        else:
+            t = {"id": key, "xyz": [float(x) for x in board_points[key]], "sigma": 0}
+        targets.append(t)
+    assert size is not None
+    dataset = {
+        "format": DATASET_FORMAT,
+        "units": "m",
+        "camera": {"width": int(size[0]), "height": int(size[1])},
+        "targets": targets,
+        "images": images,
+        "source": {"detector": "gtsam_sphere.detect", "board": board.text},
+    }
+    return dataset, report
+
+
+def write_json_atomic(obj: dict, path: str) -> None:
+    """Write ``obj`` as JSON to ``path`` atomically (temporary file + ``os.replace``)."""
+    target = os.path.abspath(path)
+    fd, tmp = tempfile.mkstemp(prefix=".tmp_", suffix=".json", dir=os.path.dirname(target))
+    try:
+        with os.fdopen(fd, "w") as fh:
+            json.dump(obj, fh, indent=1)
+            fh.write("\n")
+        os.replace(tmp, target)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+# --------------------------------------------------------------------------------------
+# CLI
+# --------------------------------------------------------------------------------------
+
+
+def add_cli_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add the ``detect`` sub-command's arguments to ``parser``."""
+    parser.add_argument("images", nargs="+", metavar="IMAGES", help="image files")
+    parser.add_argument(
+        "--board",
+        required=True,
+        metavar="SPEC",
+        help="target: 'chessboard:COLSxROWS:SQUARE_M' (inner corners), "
+        "'charuco:SXxSY:SQUARE_M:MARKER_M:DICT' or 'aruco:DICT:MARKER_M'",
+    )
+    parser.add_argument(
+        "--markers-csv",
+        metavar="CSV",
+        default=None,
+        help="surveyed ArUco marker centres 'id,X,Y,Z[,sigma]' (aruco targets)",
+    )
+    parser.add_argument(
+        "-o", "--output", required=True, metavar="DATASET.json", help="output dataset file"
+    )
+    parser.add_argument(
+        "--min-points", type=int, default=1, help="skip images with fewer observations"
+    )
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def run_cli(args: argparse.Namespace) -> int:
+    """Run the ``detect`` sub-command; return the process exit code (0 = success)."""
+    try:
+        board = BoardSpec.parse(args.board)
+        dataset, report = detect_images(
+            list(args.images),
+            board,
+            progress=not getattr(args, "no_progress", False),
+            markers_csv=args.markers_csv,
+            min_points=getattr(args, "min_points", 1),
+        )
+    except (ValueError, OSError) as exc:
+        print(f"gtsam-sphere detect: error: {exc}", file=sys.stderr)
+        return 2
+    write_json_atomic(dataset, args.output)
+    print(report.summary())
+    print(
+        f"wrote {args.output}: {len(dataset['images'])} images, {len(dataset['targets'])} targets"
+    )
+    return 0
+
+
+# --------------------------------------------------------------------------------------
+# Synthetic rendering (tests, examples)
+# --------------------------------------------------------------------------------------
+
+
+def _board_texture(board: BoardSpec, px_per_square: int) -> tuple[np.ndarray, np.ndarray]:
+    """High-resolution board texture and the board coordinates of its texel origin.
+
+    Returns ``(texture uint8 (H, W), origin_m (2,))``: texel ``(i, j)`` covers board
+    ``x`` in ``origin + [j, j+1) * square / px_per_square`` (likewise ``y`` with ``i``).
+    """
+    pps = int(px_per_square)
+    if board.kind == "chessboard":
+        nx, ny = board.cols + 1, board.rows + 1  # squares
+        margin = pps  # one square of white border
+        j = (np.arange(nx * pps + 2 * margin) - margin) // pps
+        i = (np.arange(ny * pps + 2 * margin) - margin) // pps
+        inside = (i[:, None] >= 0) & (i[:, None] < ny) & (j[None] >= 0) & (j[None] < nx)
+        dark = ((i[:, None] + j[None]) % 2 == 0) & inside
+        tex = np.where(dark, 0, 255).astype(np.uint8)
+        # Board frame origin is the first inner corner, one square inside the board.
+        origin = -np.array([1.0, 1.0]) * board.square_m - margin / pps * board.square_m
+        return tex, origin
+    if board.kind == "charuco":
+        margin = pps
+        size = (board.cols * pps + 2 * margin, board.rows * pps + 2 * margin)
+        tex = board.charuco_board().generateImage(size, marginSize=margin, borderBits=1)
+        origin = -np.array([1.0, 1.0]) * margin / pps * board.square_m
+        return np.asarray(tex, dtype=np.uint8), origin
+    raise ValueError(f"rendering supports chessboard and charuco boards, not {board.kind!r}")
+
+
+def render_board_image(
+    board: BoardSpec,
+    lens_project: Callable[[np.ndarray], np.ndarray],
+    lens_unproject: Callable[[np.ndarray], np.ndarray],
+    cam_from_world_R: np.ndarray,
+    cam_from_world_t: np.ndarray,
+    width: int,
+    height: int,
+    px_per_square: int = 48,
+    *,
+    supersample: int = 4,
+    background: int = 128,
+    blur_sigma_px: float = 0.0,
+    noise_sigma: float = 0.0,
+    seed: int = 0,
+) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """Render a printed board as seen through an arbitrary camera.
+
+    Every output pixel is split into ``supersample x supersample`` sub-samples; each is
+    unprojected to a ray, intersected with the board plane, and the board texture
+    (``px_per_square`` texels per square) is sampled bilinearly (``cv2.remap``); the
+    sub-samples are averaged (box anti-aliasing over the pixel footprint).
+
+    Parameters
+    ----------
+    board : BoardSpec
+        ``"chessboard"`` or ``"charuco"`` board; the world frame is the board frame.
+    lens_project : callable
+        ``project(points_cam (N, 3)) -> uv (N, 2)`` pixels.
+    lens_unproject : callable
+        ``unproject(uv (N, 2)) -> rays (N, 3)`` in the camera frame (any length).
+    cam_from_world_R : ndarray, shape (3, 3)
+        Rotation board -> camera, ``p_cam = R @ p_board + t``.
+    cam_from_world_t : ndarray, shape (3,)
+        Translation in metres.
+    width, height : int
+        Image size in pixels.
+    px_per_square : int, optional
+        Texture resolution (texels per board square).
+    supersample : int, optional
+        Sub-samples per pixel along each axis.
+    background : int, optional
+        Grey level where rays miss the board (or hit it from behind).
+    blur_sigma_px : float, optional
+        Gaussian blur (pixels) applied to the rendered image (optics), 0 = none.
+    noise_sigma : float, optional
+        Additive Gaussian noise (grey levels).
+    seed : int, optional
+        Noise seed.
+
+    Returns
+    -------
+    image : ndarray, shape (height, width), uint8
+        Rendered grey image.
+    truth : dict of str to ndarray, shape (2,)
+        Target id -> projected ``(u, v)`` pixels of every board corner in front of the
+        camera and inside the image.
+    """
+    R = np.asarray(cam_from_world_R, dtype=np.float64).reshape(3, 3)
+    t = np.asarray(cam_from_world_t, dtype=np.float64).reshape(3)
+    tex, origin = _board_texture(board, px_per_square)
+    texel_m = board.square_m / px_per_square
+    ss = int(supersample)
+    offs = (np.arange(ss) + 0.5) / ss - 0.5
+    acc = np.zeros((height, width), dtype=np.float64)
+    normal = R[:, 2]  # board z axis in the camera frame
+    d0 = float(normal @ t)  # plane: normal . p = d0
+    vv, uu = np.mgrid[0:height, 0:width].astype(np.float64)
+    for dv in offs:
+        for du in offs:
+            uv = np.stack([(uu + du).ravel(), (vv + dv).ravel()], axis=1)
+            rays = np.asarray(lens_unproject(uv), dtype=np.float64).reshape(-1, 3)
+            denom = rays @ normal
+            with np.errstate(divide="ignore", invalid="ignore"):
+                lam = d0 / denom
+            valid = np.isfinite(lam) & (lam > 0) & np.all(np.isfinite(rays), axis=1)
+            p_cam = rays * np.where(valid, lam, 0.0)[:, None]
+            p_board = (p_cam - t) @ R  # R^T (p - t)
+            mx = (p_board[:, 0] - origin[0]) / texel_m - 0.5
+            my = (p_board[:, 1] - origin[1]) / texel_m - 0.5
+            mx = np.where(valid, mx, -10.0).astype(np.float32).reshape(height, width)
+            my = np.where(valid, my, -10.0).astype(np.float32).reshape(height, width)
+            sample = cv2.remap(
+                tex.astype(np.float32),
+                mx,
+                my,
+                cv2.INTER_LINEAR,
+                borderMode=cv2.BORDER_CONSTANT,
+                borderValue=float(background),
+            )
+            acc += sample
+    img = acc / (ss * ss)
+    if blur_sigma_px > 0:
+        img = cv2.GaussianBlur(img, (0, 0), blur_sigma_px)
+    if noise_sigma > 0:
+        img = img + np.random.default_rng(seed).normal(0.0, noise_sigma, img.shape)
+    image = np.clip(np.round(img), 0, 255).astype(np.uint8)
+
+    truth: dict[str, np.ndarray] = {}
+    obj = board.object_points_m()
+    if obj:
+        keys = list(obj)
+        pts = np.array([obj[k] for k in keys]) @ R.T + t
+        uv = np.asarray(lens_project(pts), dtype=np.float64).reshape(-1, 2)
+        for k, p, q in zip(keys, pts, uv, strict=True):
+            # Corners seen from behind the board are not visible.
+            facing = float(normal @ p) > 0  # camera on the printed side: normal . p_cam > 0
+            if (
+                facing
+                and np.all(np.isfinite(q))
+                and -0.5 <= q[0] <= width - 0.5
+                and -0.5 <= q[1] <= height - 0.5
+            ):
+                truth[k] = q
+    return image, truth

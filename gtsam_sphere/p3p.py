@@ -1,0 +1,560 @@
+"""Minimal absolute pose (P3P) for central cameras of any field of view, and RANSAC.
+
+Bearings are unit vectors in the camera frame (x right, y down, z forward). A bearing may
+point anywhere on the sphere, including behind the camera (z < 0), so the solver never
+assumes a perspective image plane: a world point ``X`` is explained by a bearing ``f`` when
+``R @ X + t = s * f`` with a positive *distance* ``s`` along the ray.
+
+Solver (own derivation, Grunert-style)
+--------------------------------------
+With distances ``s1, s2, s3`` along the three bearings and the inter-point distances
+``a = |X2 - X3|``, ``b = |X1 - X3|``, ``c = |X1 - X2|``, the law of cosines gives::
+
+    a^2 = s2^2 + s3^2 - 2 s2 s3 cos_a        cos_a = f2 . f3
+    b^2 = s1^2 + s3^2 - 2 s1 s3 cos_b        cos_b = f1 . f3
+    c^2 = s1^2 + s2^2 - 2 s1 s2 cos_c        cos_c = f1 . f2
+
+Substituting ``s2 = u s1, s3 = v s1`` and eliminating ``s1`` leaves two conics in ``(u, v)``,
+both quadratic in ``u`` with the same leading coefficient ``b^2``::
+
+    A(u, v) = b^2 u^2 - 2 b^2 cos_a v u + (b^2 - a^2) v^2 + 2 a^2 cos_b v - a^2 = 0
+    B(u, v) = b^2 u^2 - 2 b^2 cos_c u   - c^2 v^2 + 2 c^2 cos_b v + b^2 - c^2 = 0
+
+Their resultant in ``u`` is a quartic in ``v``; ``A - B`` is linear in ``u`` and gives ``u``
+from each real root. The distances are polished by Newton's method on the three original
+equations, and ``R, t`` follow from aligning the camera-frame points ``s_i f_i`` to the
+world points (Kabsch with ``det R = +1``). Everything is vectorised over batches of
+minimal samples so RANSAC can evaluate hundreds of hypotheses per numpy call.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["PoseResult", "angular_errors_rad", "p3p", "ransac_pose"]
+
+_DEGENERATE_SIN = 1e-9  # |f_i x f_j| below this: duplicate bearings
+_DEGENERATE_AREA = 1e-9  # triangle area / longest side^2 below this: collinear points
+_RESIDUAL_TOL = 1e-6  # relative residual of the cosine equations for an accepted root
+
+
+# ---------------------------------------------------------------------------------------
+# batched P3P
+# ---------------------------------------------------------------------------------------
+def _pmul(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Multiply batches of polynomials (ascending coefficients along the last axis)."""
+    n = p.shape[-1] + q.shape[-1] - 1
+    out = np.zeros(np.broadcast_shapes(p.shape[:-1], q.shape[:-1]) + (n,))
+    for i in range(p.shape[-1]):
+        out[..., i : i + q.shape[-1]] += p[..., i : i + 1] * q
+    return out
+
+
+def _quartic_roots(coef: np.ndarray) -> np.ndarray:
+    """Roots of quartics, batched.
+
+    Parameters
+    ----------
+    coef : (K, 5) ascending coefficients.
+
+    Returns
+    -------
+    (K, 4) complex roots; NaN where the polynomial is degenerate (all zero).
+    """
+    k = coef.shape[0]
+    roots = np.full((k, 4), np.nan + 0j)
+    scale = np.max(np.abs(coef), axis=1)
+    lead = coef[:, 4]
+    good = np.abs(lead) > 1e-10 * scale
+    if np.any(good):
+        c = coef[good] / lead[good, None]
+        comp = np.zeros((c.shape[0], 4, 4))
+        comp[:, 1:, :3] = np.eye(3)
+        comp[:, :, 3] = -c[:, :4]
+        roots[good] = np.linalg.eigvals(comp)
+    for i in np.flatnonzero(~good & (scale > 0)):
+        r = np.roots(coef[i, ::-1])  # np.roots strips the vanishing leading terms
+        roots[i, : r.size] = r
+    return roots
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Cross product along the last axis (faster than ``np.cross`` for small batches)."""
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
+
+
+def _inv3(m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Batched 3x3 inverse by cofactors; returns (inverse, determinant)."""
+    r0, r1, r2 = m[..., 0, :], m[..., 1, :], m[..., 2, :]
+    c0, c1, c2 = _cross(r1, r2), _cross(r2, r0), _cross(r0, r1)
+    det = np.einsum("...i,...i->...", r0, c0)
+    adj = np.stack([c0, c1, c2], axis=-1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = adj / det[..., None, None]
+    return inv, det
+
+
+def _kabsch(p_cam: np.ndarray, p_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rigid transform with ``p_cam ~ R @ p_world + t``, batched over leading axes.
+
+    Parameters
+    ----------
+    p_cam, p_world : (..., n, 3) corresponding points.
+
+    Returns
+    -------
+    R : (..., 3, 3) rotation, det +1.  t : (..., 3) translation.
+    """
+    mc = p_cam.mean(axis=-2)
+    mw = p_world.mean(axis=-2)
+    cov = np.einsum("...ni,...nj->...ij", p_cam - mc[..., None, :], p_world - mw[..., None, :])
+    u, _, vt = np.linalg.svd(cov)
+    d = np.sign(np.linalg.det(u @ vt))
+    d[d == 0] = 1.0
+    u = u.copy()
+    u[..., :, 2] *= d[..., None]
+    rot = u @ vt
+    t = mc - np.einsum("...ij,...j->...i", rot, mw)
+    return rot, t
+
+
+def _p3p_batch(
+    bearings: np.ndarray, points: np.ndarray, n_polish: int = 2
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """All P3P solutions for a batch of minimal samples.
+
+    Parameters
+    ----------
+    bearings : (K, 3, 3) unit bearing vectors (rows), camera frame.
+    points : (K, 3, 3) world points (rows), metres.
+    n_polish : Newton iterations polishing the distances along the rays.
+
+    Returns
+    -------
+    R : (K, 4, 3, 3) cam_from_world rotations (garbage where not valid).
+    t : (K, 4, 3) cam_from_world translations, metres.
+    valid : (K, 4) bool, which of the (up to 4) solution slots are real solutions.
+    """
+    bearings = np.asarray(bearings, dtype=float)
+    points = np.asarray(points, dtype=float)
+    k = bearings.shape[0]
+    f1, f2, f3 = bearings[:, 0], bearings[:, 1], bearings[:, 2]
+    x1, x2, x3 = points[:, 0], points[:, 1], points[:, 2]
+
+    # degeneracy: duplicate / antipodal bearings, collinear world points
+    sin_min = np.min(
+        np.stack(
+            [
+                np.linalg.norm(_cross(f1, f2), axis=1),
+                np.linalg.norm(_cross(f1, f3), axis=1),
+                np.linalg.norm(_cross(f2, f3), axis=1),
+            ]
+        ),
+        axis=0,
+    )
+    a2 = np.sum((x2 - x3) ** 2, axis=1)
+    b2 = np.sum((x1 - x3) ** 2, axis=1)
+    c2 = np.sum((x1 - x2) ** 2, axis=1)
+    longest2 = np.maximum(np.maximum(a2, b2), c2)
+    area2 = np.linalg.norm(_cross(x2 - x1, x3 - x1), axis=1)
+    ok_sample = (
+        np.all(np.isfinite(bearings), axis=(1, 2))
+        & np.all(np.isfinite(points), axis=(1, 2))
+        & (sin_min > _DEGENERATE_SIN)
+        & (area2 > _DEGENERATE_AREA * np.where(longest2 > 0, longest2, 1.0))
+        & (longest2 > 0)
+    )
+    # normalise the scale for conditioning (restored through the Kabsch step)
+    scale2 = np.where(ok_sample, (a2 + b2 + c2) / 3.0, 1.0)
+    a2n, b2n, c2n = a2 / scale2, b2 / scale2, c2 / scale2
+    ca = np.einsum("ki,ki->k", f2, f3)
+    cb = np.einsum("ki,ki->k", f1, f3)
+    cc = np.einsum("ki,ki->k", f1, f2)
+
+    zeros = np.zeros(k)
+    # polynomials in v (ascending), after dividing the resultant by b^4
+    a0 = np.stack([-a2n, 2 * a2n * cb, b2n - a2n], axis=1)  # A0(v)
+    b0 = np.stack([b2n - c2n, 2 * c2n * cb, -c2n], axis=1)  # B0(v)
+    d = b0 - a0  # (B0 - A0)(v)
+    e = np.stack([-2 * b2n * cc, 2 * b2n * ca], axis=1)  # (B1 - A1)(v) / b^2
+    g = 2 * (cc[:, None] * np.concatenate([a0, zeros[:, None]], axis=1))
+    g -= 2 * ca[:, None] * np.concatenate([zeros[:, None], b0], axis=1)
+    quartic = _pmul(d, d) - _pmul(e, g)
+    quartic[~ok_sample] = 0.0
+
+    roots = _quartic_roots(quartic)  # (K, 4)
+    re = roots.real
+    with np.errstate(invalid="ignore"):
+        nearly_real = np.abs(roots.imag) <= 1e-4 * (1.0 + np.abs(re))
+        v = np.where(nearly_real, re, np.nan)
+        # u from A - B = 0 (linear in u): (A1 - B1) u + (A0 - B0) = 0
+        dv = d[:, None, 0] + d[:, None, 1] * v + d[:, None, 2] * v * v
+        ev = e[:, None, 0] + e[:, None, 1] * v
+        u = -dv / ev
+        den = 1.0 + u * u - 2.0 * u * cc[:, None]
+        s1 = np.sqrt(c2n[:, None] / den)
+    s = np.stack([s1, u * s1, v * s1], axis=-1)  # (K, 4, 3) normalised distances
+
+    # Newton polish on the three cosine equations
+    cab = np.stack([ca, cb, cc], axis=1)[:, None, :]  # (K,1,3)
+    rhs = np.stack([a2n, b2n, c2n], axis=1)[:, None, :]
+    for _ in range(n_polish):
+        resid, jac = _cosine_equations(s, cab, rhs)
+        inv, det = _inv3(jac)
+        with np.errstate(invalid="ignore"):
+            step = np.einsum("...ij,...j->...i", inv, resid)
+        usable = np.isfinite(step).all(axis=-1) & (np.abs(det) > 1e-14)
+        s = np.where(usable[..., None], s - step, s)
+    resid, _ = _cosine_equations(s, cab, rhs)
+    with np.errstate(invalid="ignore"):
+        valid = (
+            ok_sample[:, None]
+            & np.all(np.isfinite(s), axis=-1)
+            & np.all(s > 0, axis=-1)
+            & (np.max(np.abs(resid), axis=-1) < _RESIDUAL_TOL)
+        )
+    # drop duplicated roots (double roots reported twice)
+    for j in range(1, 4):
+        for i in range(j):
+            same = np.max(np.abs(s[:, j] - s[:, i]), axis=-1) < 1e-7
+            valid[:, j] &= ~(same & valid[:, i])
+
+    s_m = np.where(valid[..., None], s, 1.0) * np.sqrt(scale2)[:, None, None]
+    p_cam = s_m[..., None] * bearings[:, None, :, :]  # (K, 4, 3, 3)
+    pw = np.broadcast_to(points[:, None], p_cam.shape)
+    pw = np.where(valid[..., None, None], pw, np.eye(3))
+    p_cam = np.where(valid[..., None, None], p_cam, np.eye(3))
+    rot, t = _kabsch(p_cam, pw)
+    return rot, t, valid
+
+
+def _cosine_equations(
+    s: np.ndarray, cab: np.ndarray, rhs: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Residuals (..., 3) and Jacobian (..., 3, 3) of the law-of-cosines system."""
+    s1, s2, s3 = s[..., 0], s[..., 1], s[..., 2]
+    ca, cb, cc = cab[..., 0], cab[..., 1], cab[..., 2]
+    resid = np.stack(
+        [
+            s2 * s2 + s3 * s3 - 2 * s2 * s3 * ca,
+            s1 * s1 + s3 * s3 - 2 * s1 * s3 * cb,
+            s1 * s1 + s2 * s2 - 2 * s1 * s2 * cc,
+        ],
+        axis=-1,
+    ) - np.broadcast_to(rhs, s.shape)
+    z = np.zeros_like(s1)
+    jac = np.stack(
+        [
+            np.stack([z, 2 * (s2 - s3 * ca), 2 * (s3 - s2 * ca)], axis=-1),
+            np.stack([2 * (s1 - s3 * cb), z, 2 * (s3 - s1 * cb)], axis=-1),
+            np.stack([2 * (s1 - s2 * cc), 2 * (s2 - s1 * cc), z], axis=-1),
+        ],
+        axis=-2,
+    )
+    return resid, jac
+
+
+def p3p(bearings_cam: np.ndarray, points_world: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Solve the perspective-three-point problem for bearings in any direction.
+
+    Parameters
+    ----------
+    bearings_cam : (3, 3) array
+        Unit bearing vectors (rows) in the camera frame (x right, y down, z forward).
+        They may point sideways or behind the camera (z <= 0).
+    points_world : (3, 3) array
+        The matching world points (rows), metres.
+
+    Returns
+    -------
+    list of (R, t)
+        All real solutions (at most 4) with ``R @ X + t = s * f`` and ``s > 0`` for the
+        three correspondences; ``R`` (3, 3) rotation, ``t`` (3,) metres, cam_from_world.
+        Degenerate input (collinear world points, duplicate or antipodal bearings, non-finite
+        values) returns an empty list.
+    """
+    f = np.asarray(bearings_cam, dtype=float).reshape(1, 3, 3)
+    x = np.asarray(points_world, dtype=float).reshape(1, 3, 3)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        norms = np.linalg.norm(f, axis=-1, keepdims=True)
+        f = f / norms
+    rot, t, valid = _p3p_batch(f, x, n_polish=4)
+    return [(rot[0, j].copy(), t[0, j].copy()) for j in range(4) if valid[0, j]]
+
+
+# ---------------------------------------------------------------------------------------
+# RANSAC
+# ---------------------------------------------------------------------------------------
+@dataclass
+class PoseResult:
+    """Outcome of :func:`ransac_pose`.
+
+    Attributes
+    ----------
+    R : (3, 3) cam_from_world rotation (NaN when ``success`` is False and no pose exists).
+    t : (3,) cam_from_world translation, metres.
+    inlier_mask : (N,) bool, observations within the angular threshold.
+    n_inliers : int, ``inlier_mask.sum()``.
+    median_error_rad : float, median angular error of the inliers, radians (NaN if none).
+    success : bool, a pose with at least ``min_inliers`` inliers was found.
+    reason : str, human-readable explanation when ``success`` is False.
+    """
+
+    R: np.ndarray
+    t: np.ndarray
+    inlier_mask: np.ndarray
+    n_inliers: int
+    median_error_rad: float
+    success: bool
+    reason: str = ""
+
+
+def angular_errors_rad(
+    bearings_cam: np.ndarray, points_world: np.ndarray, R: np.ndarray, t: np.ndarray
+) -> np.ndarray:
+    """Angles between measured bearings and the rays to the transformed world points.
+
+    Parameters
+    ----------
+    bearings_cam : (N, 3) unit bearings, camera frame.
+    points_world : (N, 3) world points, metres.
+    R : (3, 3) or (H, 3, 3) cam_from_world rotation(s).
+    t : (3,) or (H, 3) cam_from_world translation(s), metres.
+
+    Returns
+    -------
+    (N,) or (H, N) angular errors in radians, in [0, pi]. NaN rows of the input give NaN.
+    """
+    R = np.asarray(R, dtype=float)
+    t = np.asarray(t, dtype=float)
+    p = np.einsum("...ij,nj->...ni", R, points_world) + t[..., None, :]
+    cross = np.linalg.norm(_cross(bearings_cam, p), axis=-1)
+    dot = np.einsum("...ni,ni->...n", p, bearings_cam)
+    return np.arctan2(cross, dot)
+
+
+def _cos_errors(bearings: np.ndarray, points: np.ndarray, R: np.ndarray, t: np.ndarray):
+    """Cosine of the angular error for H hypotheses at once: (H, N)."""
+    p = np.einsum("hij,nj->hni", R, points) + t[:, None, :]
+    nrm = np.linalg.norm(p, axis=-1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.einsum("hni,ni->hn", p, bearings) / nrm
+
+
+def _sample_triplets(rng: np.random.Generator, n: int, k: int) -> np.ndarray:
+    """(k, 3) triplets of distinct indices in [0, n), uniformly."""
+    i0 = rng.integers(0, n, size=k)
+    i1 = rng.integers(0, n - 1, size=k)
+    i1 += i1 >= i0
+    lo, hi = np.minimum(i0, i1), np.maximum(i0, i1)
+    i2 = rng.integers(0, n - 2, size=k)
+    i2 += i2 >= lo
+    i2 += i2 >= hi
+    return np.stack([i0, i1, i2], axis=1)
+
+
+def _so3_exp(w: np.ndarray) -> np.ndarray:
+    """Rotation matrix of a rotation vector (3,), radians."""
+    th = np.linalg.norm(w)
+    k = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+    if th < 1e-12:
+        return np.eye(3) + k
+    return np.eye(3) + np.sin(th) / th * k + (1 - np.cos(th)) / th**2 * (k @ k)
+
+
+def _refine_pose(
+    bearings: np.ndarray,
+    points: np.ndarray,
+    R: np.ndarray,
+    t: np.ndarray,
+    huber_rad: float,
+    n_iter: int = 8,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Levenberg-Marquardt on the chord error ``p/|p| - f`` (~ angle) over a 6-DoF pose.
+
+    The rotation is updated on the left, ``R <- exp([w]) R``, the translation additively.
+    Residuals get Huber weights with knee ``huber_rad``.
+    """
+    lam = 1e-3
+
+    def cost_of(R_, t_):
+        p = points @ R_.T + t_
+        r = p / np.linalg.norm(p, axis=1, keepdims=True) - bearings
+        e = np.linalg.norm(r, axis=1)
+        return np.sum(np.where(e <= huber_rad, e * e, 2 * huber_rad * e - huber_rad**2))
+
+    cost = cost_of(R, t)
+    for _ in range(n_iter):
+        p = points @ R.T + t
+        nrm = np.linalg.norm(p, axis=1)
+        ph = p / nrm[:, None]
+        r = ph - bearings
+        e = np.linalg.norm(r, axis=1)
+        w = np.where(e <= huber_rad, 1.0, huber_rad / np.maximum(e, 1e-300))
+        # d(ph)/dp = (I - ph ph^T)/|p| ; dp/dw = -[R X]x ; dp/dt = I
+        proj = (np.eye(3)[None] - ph[:, :, None] * ph[:, None, :]) / nrm[:, None, None]
+        rx = p - t
+        skew = np.zeros((len(p), 3, 3))
+        skew[:, 0, 1], skew[:, 0, 2] = rx[:, 2], -rx[:, 1]
+        skew[:, 1, 0], skew[:, 1, 2] = -rx[:, 2], rx[:, 0]
+        skew[:, 2, 0], skew[:, 2, 1] = rx[:, 1], -rx[:, 0]
+        jac = np.concatenate([proj @ skew, proj], axis=2)  # (N, 3, 6)
+        jw = jac * w[:, None, None]
+        h = np.einsum("nki,nkj->ij", jw, jac)
+        g = np.einsum("nki,nk->i", jw, r)
+        improved = False
+        for _ in range(6):
+            try:
+                delta = -np.linalg.solve(h + lam * np.diag(np.diag(h) + 1e-12), g)
+            except np.linalg.LinAlgError:
+                lam *= 10
+                continue
+            R_new = _so3_exp(delta[:3]) @ R
+            t_new = t + delta[3:]
+            c_new = cost_of(R_new, t_new)
+            if np.isfinite(c_new) and c_new <= cost:
+                R, t, cost = R_new, t_new, c_new
+                lam = max(lam / 10, 1e-9)
+                improved = True
+                break
+            lam *= 10
+        if not improved or np.linalg.norm(delta) < 1e-12:
+            break
+    # re-orthonormalise
+    u, _, vt = np.linalg.svd(R)
+    return u @ vt, t
+
+
+def ransac_pose(
+    bearings_cam: np.ndarray,
+    points_world: np.ndarray,
+    threshold_rad: float,
+    rng: np.random.Generator,
+    max_iterations: int = 1000,
+    confidence: float = 0.999,
+    *,
+    min_inliers: int = 4,
+    refine: bool = True,
+    batch_size: int = 64,
+) -> PoseResult:
+    """Robust absolute pose from bearings in any direction (P3P + MSAC + LM refinement).
+
+    Parameters
+    ----------
+    bearings_cam : (N, 3) array
+        Unit bearing vectors in the camera frame; rows with non-finite values are never
+        inliers.
+    points_world : (N, 3) array
+        Matching world points, metres.
+    threshold_rad : float
+        Inlier threshold on the angle between a bearing and the ray ``R p + t``, radians.
+    rng : numpy.random.Generator
+        Source of the random minimal samples.
+    max_iterations : int
+        Upper bound on the number of minimal samples drawn.
+    confidence : float
+        Stop once the probability of having drawn an all-inlier sample exceeds this,
+        estimated from the current best inlier ratio (adaptive iteration count).
+    min_inliers : int, keyword-only
+        ``success`` requires at least this many inliers (at least 4: three define the pose).
+    refine : bool, keyword-only
+        Refine the best hypothesis on its inliers (LM over 6 pose parameters, angular
+        error, Huber) and recompute the inliers.
+    batch_size : int, keyword-only
+        Minimal samples solved per vectorised call.
+
+    Returns
+    -------
+    PoseResult
+        cam_from_world ``R, t``; ``inlier_mask`` (N,); ``median_error_rad`` of the inliers.
+    """
+    f = np.asarray(bearings_cam, dtype=float)
+    x = np.asarray(points_world, dtype=float)
+    n = f.shape[0]
+    finite = np.all(np.isfinite(f), axis=1) & np.all(np.isfinite(x), axis=1)
+    idx_ok = np.flatnonzero(finite)
+    nan_pose = (np.full((3, 3), np.nan), np.full(3, np.nan))
+    min_inliers = max(int(min_inliers), 4)
+    if idx_ok.size < max(4, min_inliers):
+        return PoseResult(
+            *nan_pose,
+            np.zeros(n, bool),
+            0,
+            float("nan"),
+            False,
+            f"only {idx_ok.size} usable observations (need at least {max(4, min_inliers)})",
+        )
+    fo, xo = f[idx_ok], x[idx_ok]
+    m = idx_ok.size
+    cos_thr = np.cos(threshold_rad)
+    thr2 = threshold_rad**2
+
+    best_cost = np.inf
+    best = None
+    best_inl = 0
+    needed = max_iterations
+    drawn = 0
+    while drawn < min(needed, max_iterations):
+        k = min(batch_size, max_iterations - drawn)
+        tri = _sample_triplets(rng, m, k)
+        drawn += k
+        rot, t, valid = _p3p_batch(fo[tri], xo[tri])
+        if not np.any(valid):
+            continue
+        rot, t = rot[valid], t[valid]
+        cosang = _cos_errors(fo, xo, rot, t)
+        ang = np.arccos(np.clip(np.nan_to_num(cosang, nan=-1.0), -1.0, 1.0))
+        cost = np.minimum(ang * ang, thr2).sum(axis=1)  # MSAC
+        j = int(np.argmin(cost))
+        if cost[j] < best_cost:
+            best_cost = float(cost[j])
+            best = (rot[j], t[j])
+            best_inl = int(np.sum(cosang[j] >= cos_thr))
+            w = best_inl / m
+            if w >= 1.0:
+                needed = 0
+            elif w > 0:
+                needed = int(np.ceil(np.log(1 - confidence) / np.log1p(-(w**3))))
+    if best is None:
+        return PoseResult(
+            *nan_pose,
+            np.zeros(n, bool),
+            0,
+            float("nan"),
+            False,
+            f"no valid P3P solution from {drawn} minimal samples of {m} observations",
+        )
+
+    R_b, t_b = best
+
+    def score(R_, t_):
+        ang_ = angular_errors_rad(fo, xo, R_, t_)
+        ang_ = np.nan_to_num(ang_, nan=np.pi)
+        return ang_, float(np.minimum(ang_ * ang_, thr2).sum())
+
+    ang, cost = score(R_b, t_b)
+    if refine:
+        for _ in range(3):
+            inl = ang < threshold_rad
+            if inl.sum() < 4:
+                break
+            R_r, t_r = _refine_pose(fo[inl], xo[inl], R_b, t_b, huber_rad=threshold_rad / 2)
+            ang_r, cost_r = score(R_r, t_r)
+            if cost_r > cost:
+                break
+            converged = np.array_equal(ang_r < threshold_rad, inl)
+            R_b, t_b, ang, cost = R_r, t_r, ang_r, cost_r
+            if converged:
+                break
+
+    mask = np.zeros(n, bool)
+    mask[idx_ok] = ang < threshold_rad
+    n_inl = int(mask.sum())
+    med = float(np.median(ang[ang < threshold_rad])) if n_inl else float("nan")
+    success = n_inl >= min_inliers
+    reason = "" if success else f"RANSAC found {n_inl} inliers of {n} (need {min_inliers})"
+    return PoseResult(R_b, t_b, mask, n_inl, med, success, reason)

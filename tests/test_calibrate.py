@@ -1,0 +1,106 @@
+"""End-to-end spherical bundle adjustment on simulated rooms with known truth."""
+
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+import pytest
+from helpers import checkpoints_of
+
+from gtsam_sphere.calibrate import CalibrationOptions, calibrate
+from gtsam_sphere.dataset import parse_dataset
+from gtsam_sphere.evaluate import evaluate_calibration
+from gtsam_sphere.simulate import SimulationOptions, simulate_room
+
+# A room smaller than the paper's (CI has 2 cores): 30 images, 220 targets.
+ROOM = dict(n_images=30, n_targets=220, n_checkpoints=100, width=2000, height=1500)
+
+
+@functools.cache
+def _sim(fov_deg: float, blunder_rate: float = 0.0, sigma_mode: str = "weighted", seed: int = 3):
+    opts = SimulationOptions(
+        lens="sphere",
+        fov_deg=fov_deg,
+        noise_px=0.3,
+        blunder_rate=blunder_rate,
+        sigma_mode=sigma_mode,
+        seed=seed,
+        **ROOM,
+    )
+    return simulate_room(opts)
+
+
+@functools.cache
+def _run(fov_deg, blunder_rate=0.0, sigma_mode="weighted", oracle=False, optimizer="lm"):
+    sim = _sim(fov_deg, blunder_rate, sigma_mode)
+    lens = sim.truth["lens"]
+    fixed = (lens["cx"], lens["cy"], lens["f"]) if oracle else None
+    options = CalibrationOptions(fixed_intrinsics=fixed, optimizer=optimizer)
+    calib = calibrate(parse_dataset(sim.dataset), options)
+    ids, xyz = checkpoints_of(sim)
+    return sim, calib, evaluate_calibration(calib, ids, xyz)
+
+
+@pytest.mark.parametrize("fov_deg", [120.0, 200.0, 300.0])
+def test_sphere_lens_intrinsics_within_three_sigma(fov_deg):
+    sim, calib, _ = _run(fov_deg)
+    lens = sim.truth["lens"]
+    sig = calib.statistics["intrinsics_sigma"]
+    cam = calib.camera
+    if fov_deg > 180:
+        assert calib.statistics["n_beyond_90deg"] > 0
+    for est, true, s in (
+        (cam.xp, lens["cx"], sig["xp_px"]),
+        (cam.yp, lens["cy"], sig["yp_px"]),
+        (cam.c, lens["f"], sig["c_px"]),
+    ):
+        assert 0 < s < 1.0
+        assert abs(est - true) < 3 * s, (est, true, s)
+    assert calib.statistics["converged"]
+    assert 0.7 < calib.statistics["variance_factor"] < 1.3
+
+
+@pytest.mark.parametrize("fov_deg", [120.0, 200.0, 300.0])
+def test_checkpoint_rmse_close_to_oracle(fov_deg):
+    _, _, rep = _run(fov_deg)
+    _, _, oracle = _run(fov_deg, oracle=True)
+    assert rep.rmse_3d <= 1.10 * oracle.rmse_3d, (rep.rmse_3d, oracle.rmse_3d)
+
+
+def test_huber_resists_five_percent_blunders():
+    _, _, clean = _run(200.0)
+    sim, calib, rep = _run(200.0, blunder_rate=0.05)
+    assert rep.rmse_3d <= 1.20 * clean.rmse_3d, (rep.rmse_3d, clean.rmse_3d)
+    listed = {(d["image"], d["target"]) for d in calib.extra["downweighted"]}
+    blunders = {(b["image"], b["target"]) for b in sim.truth["blunders"]}
+    found = len(blunders & listed) / len(blunders)
+    assert found > 0.95, found
+
+
+def test_l2_is_hurt_by_blunders_more_than_huber():
+    sim = _sim(200.0, 0.05)
+    ids, xyz = checkpoints_of(sim)
+    l2 = calibrate(parse_dataset(sim.dataset), CalibrationOptions(loss="l2", covariance=False))
+    _, _, huber = _run(200.0, blunder_rate=0.05)
+    assert evaluate_calibration(l2, ids, xyz).rmse_3d > 2 * huber.rmse_3d
+
+
+def test_free_network_is_not_distorted_by_approximate_coordinates():
+    sim, calib, rep = _run(200.0, sigma_mode="free")
+    _, _, weighted = _run(200.0)
+    assert calib.statistics["datum"] == "free"
+    # inner-constraint datum: no net translation / rotation / scale w.r.t. the approximations
+    approx = {t["id"]: t["xyz"] for t in sim.dataset["targets"]}
+    a = np.array([approx[t] for t in calib.target_ids])
+    d = calib.target_xyz - a
+    assert np.linalg.norm(d.mean(0)) < 1e-6
+    # and the network's shape is as good as with weighted approximate coordinates
+    assert rep.rmse_3d < 1.5 * weighted.rmse_3d
+
+
+def test_dogleg_matches_lm():
+    _, lm, rep_lm = _run(120.0)
+    _, dl, rep_dl = _run(120.0, optimizer="dogleg")
+    assert abs(dl.camera.c - lm.camera.c) < 1e-3
+    assert abs(rep_dl.rmse_3d - rep_lm.rmse_3d) < 1e-5

@@ -1,0 +1,293 @@
+"""Tests of gtsam_sphere.detect: board parsing, rendered-board accuracy, real fisheye images."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from gtsam_sphere.detect import (
+    BoardSpec,
+    add_cli_arguments,
+    detect_image,
+    detect_images,
+    refine_predicted_corners,
+    render_board_image,
+    run_cli,
+)
+
+DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
+W, H = 560, 420
+
+
+class Equidistant:
+    """Local equidistant fisheye r = f * alpha (alpha = angle off the optical axis)."""
+
+    def __init__(self, f, cx, cy):
+        self.f, self.cx, self.cy = f, cx, cy
+
+    def project(self, p):
+        p = np.asarray(p, dtype=float)
+        r = np.hypot(p[:, 0], p[:, 1])
+        alpha = np.arctan2(r, p[:, 2])
+        s = np.where(r > 1e-12, self.f * alpha / np.maximum(r, 1e-12), self.f / p[:, 2])
+        return np.stack([self.cx + s * p[:, 0], self.cy + s * p[:, 1]], axis=1)
+
+    def unproject(self, uv):
+        x = (uv[:, 0] - self.cx) / self.f
+        y = (uv[:, 1] - self.cy) / self.f
+        a = np.hypot(x, y)
+        s = np.where(a > 1e-12, np.sin(a) / np.maximum(a, 1e-12), 1.0)
+        return np.stack([x * s, y * s, np.cos(a)], axis=1)
+
+
+class Pinhole:
+    def __init__(self, f, cx, cy):
+        self.f, self.cx, self.cy = f, cx, cy
+
+    def project(self, p):
+        return np.stack(
+            [self.cx + self.f * p[:, 0] / p[:, 2], self.cy + self.f * p[:, 1] / p[:, 2]], 1
+        )
+
+    def unproject(self, uv):
+        x = (uv[:, 0] - self.cx) / self.f
+        y = (uv[:, 1] - self.cy) / self.f
+        return np.stack([x, y, np.ones_like(x)], axis=1)
+
+
+FISHEYE = Equidistant(170.0, W / 2 - 0.5 + 3.2, H / 2 - 0.5 - 1.7)
+PINHOLE = Pinhole(420.0, W / 2 - 0.5, H / 2 - 0.5)
+
+
+def rot(rx, ry, rz):
+    return cv2.Rodrigues(np.array([rx, ry, rz], dtype=float))[0]
+
+
+# Board pose views: mild and strong obliquity; the board's first corner near the top-left.
+POSES = {
+    "mild": (rot(0.3, -0.2, 0.05), np.array([-0.08, -0.12, 0.35])),
+    "oblique": (rot(-0.5, 0.4, 0.3), np.array([-0.05, -0.1, 0.30])),
+}
+
+
+def rms_vs_truth(det, truth):
+    common = sorted(set(det) & set(truth))
+    e = np.array([det[k] - truth[k] for k in common])
+    return float(np.sqrt(np.mean(np.sum(e**2, axis=1)))), len(common)
+
+
+# ------------------------------------------------------------------ parsing
+
+
+def test_parse_boards():
+    b = BoardSpec.parse("chessboard:4x6:0.0325")
+    assert (b.kind, b.cols, b.rows, b.square_m) == ("chessboard", 4, 6, 0.0325)
+    pts = b.object_points_m()
+    assert len(pts) == 24
+    np.testing.assert_allclose(pts["C000"], [0, 0, 0])
+    np.testing.assert_allclose(pts["C005"], [0.0325, 0.0325, 0])  # row 1, column 1
+    np.testing.assert_allclose(pts["C023"], [3 * 0.0325, 5 * 0.0325, 0])
+    c = BoardSpec.parse("charuco:5x7:0.04:0.03:DICT_4X4_50")
+    assert (c.kind, c.cols, c.rows, c.marker_m, c.dictionary) == (
+        "charuco",
+        5,
+        7,
+        0.03,
+        "DICT_4X4_50",
+    )
+    assert len(c.object_points_m()) == 24
+    np.testing.assert_allclose(c.object_points_m()["C000"], [0.04, 0.04, 0])
+    a = BoardSpec.parse("aruco:DICT_4X4_50:0.10")
+    assert (a.kind, a.marker_m, a.object_points_m()) == ("aruco", 0.10, {})
+
+
+@pytest.mark.parametrize(
+    "text, part",
+    [
+        ("chess:4x6:0.03", "chess"),
+        ("chessboard:4-6:0.03", "4-6"),
+        ("chessboard:4x6:-1", "-1"),
+        ("chessboard:4x6", "chessboard:COLSxROWS"),
+        ("charuco:5x7:0.04:0.05:DICT_4X4_50", "0.05"),
+        ("charuco:5x7:0.04:0.03:DICT_9X9_1", "DICT_9X9_1"),
+        ("aruco:DICT_4X4_50:abc", "abc"),
+    ],
+)
+def test_parse_errors_name_the_bad_part(text, part):
+    with pytest.raises(ValueError, match=part):
+        BoardSpec.parse(text)
+
+
+# ------------------------------------------------------------------ rendered boards
+
+
+@pytest.mark.parametrize("lens_name", ["fisheye", "pinhole"])
+@pytest.mark.parametrize("pose", ["mild", "oblique"])
+@pytest.mark.parametrize("spec", ["chessboard:4x6:0.04", "charuco:5x7:0.04:0.03:DICT_4X4_50"])
+def test_rendered_board_subpixel_accuracy(spec, pose, lens_name):
+    board = BoardSpec.parse(spec)
+    lens = FISHEYE if lens_name == "fisheye" else PINHOLE
+    R, t = POSES[pose]
+    if lens_name == "pinhole":
+        t = t + np.array([0.0, 0.0, 0.25])  # keep the whole board inside the narrow view
+    img, truth = render_board_image(
+        board, lens.project, lens.unproject, R, t, W, H, px_per_square=48, blur_sigma_px=0.7
+    )
+    assert len(truth) == board.corner_count()
+    det = detect_image(img, board)
+    rms, n = rms_vs_truth(det, truth)
+    print(f"{spec} {lens_name} {pose}: {n}/{len(truth)} corners, RMS {rms:.4f} px")
+    assert set(det) <= set(truth)
+    if board.kind == "chessboard":
+        assert set(det) == set(truth)  # ids follow the documented ordering rule
+    else:
+        assert n >= 0.7 * len(truth)  # small markers at the fisheye edge may be missed
+    assert rms < 0.1
+
+
+def test_chessboard_ordering_rules():
+    # Asymmetric board (4+5 odd): colour fixes the ids even when the camera rolls by 180 deg.
+    board = BoardSpec.parse("chessboard:4x5:0.04")
+    R, t = POSES["mild"]
+    for roll in (0.0, np.pi):
+        Rr = rot(0, 0, roll) @ R
+        img, truth = render_board_image(
+            board, FISHEYE.project, FISHEYE.unproject, Rr, rot(0, 0, roll) @ t, W, H, supersample=3
+        )
+        det = detect_image(img, board)
+        assert set(det) == set(truth)
+        assert rms_vs_truth(det, truth)[0] < 0.1, roll
+    # Symmetric board rolled by 180 deg: C000 is the corner nearest the image's top-left.
+    board = BoardSpec.parse("chessboard:4x6:0.04")
+    img, truth = render_board_image(
+        board, FISHEYE.project, FISHEYE.unproject, rot(0, 0, np.pi) @ R, rot(0, 0, np.pi) @ t, W, H
+    )
+    det = detect_image(img, board)
+    ends = [det["C000"], det["C023"]]
+    assert ends[0].sum() < ends[1].sum()
+    np.testing.assert_allclose(det["C000"], truth["C023"], atol=0.3)
+
+
+def test_refine_predicted_corners():
+    board = BoardSpec.parse("chessboard:4x6:0.04")
+    R, t = POSES["oblique"]
+    img, truth = render_board_image(
+        board, FISHEYE.project, FISHEYE.unproject, R, t, W, H, blur_sigma_px=0.7
+    )
+    rng = np.random.default_rng(1)
+    pred = {k: v + rng.uniform(-1.5, 1.5, 2) for k, v in truth.items()}
+    # Decoys: a flat background spot, a straight board edge, a far-off prediction.
+    pred["flat"] = np.array([30.0, 30.0])
+    c0, c1 = truth["C000"], truth["C001"]
+    pred["edge"] = 0.5 * (c0 + c1)  # mid-edge between two corners: an edge, not a saddle
+    pred["outside"] = np.array([-20.0, 5.0])
+    out = refine_predicted_corners(img, pred, window_px=7)
+    assert not {"flat", "edge", "outside"} & set(out)
+    rms, n = rms_vs_truth(out, truth)
+    print(f"refine_predicted_corners: {n}/{len(truth)} kept, RMS {rms:.4f} px")
+    assert n == len(truth)
+    assert rms < 0.1
+
+
+# ------------------------------------------------------------------ ArUco + CSV, many images, CLI
+
+
+def _aruco_scene(path, ids, side=60):
+    """Fronto-parallel markers pasted on a white canvas; returns the centres (u, v)."""
+    dictionary = cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_4X4_50)
+    canvas = np.full((H, W), 255, np.uint8)
+    centres = {}
+    for k, mid in enumerate(ids):
+        x0, y0 = 40 + 120 * (k % 4), 60 + 150 * (k // 4)
+        canvas[y0 : y0 + side, x0 : x0 + side] = cv2.aruco.generateImageMarker(
+            dictionary, mid, side
+        )
+        centres[f"M{mid}"] = np.array([x0 + side / 2 - 0.5, y0 + side / 2 - 0.5])
+    cv2.imwrite(str(path), cv2.GaussianBlur(canvas, (0, 0), 0.7))
+    return centres
+
+
+def test_aruco_markers_with_csv(tmp_path):
+    centres = _aruco_scene(tmp_path / "room.png", [3, 7, 11, 20])
+    csv_path = tmp_path / "markers.csv"
+    csv_path.write_text("id,X,Y,Z,sigma\n3,1.0,2.0,0.5,0.01\n7,1.5,2.0,0.5\n11,2,2,0.5,0.02\n")
+    board = BoardSpec.parse("aruco:DICT_4X4_50:0.10")
+    det = detect_image(cv2.imread(str(tmp_path / "room.png"), 0), board)
+    for key, uv in centres.items():
+        np.testing.assert_allclose(det[key], uv, atol=0.15)
+        assert all(f"{key}_{k}" in det for k in range(4))
+    ds, rep = detect_images(
+        [str(tmp_path / "room.png")], board, progress=False, markers_csv=str(csv_path)
+    )
+    targets = {t["id"]: t for t in ds["targets"]}
+    assert set(targets) == {"M3", "M7", "M11"}
+    assert targets["M3"]["sigma"] == 0.01 and "sigma" not in targets["M7"]
+    assert rep.unknown_markers == {"M20": 1}
+    assert "M20" in rep.summary()
+    with pytest.raises(ValueError, match="markers-csv"):
+        detect_images([str(tmp_path / "room.png")], board, progress=False)
+
+
+def test_detect_images_and_cli(tmp_path, capsys):
+    board = BoardSpec.parse("chessboard:4x6:0.04")
+    paths = []
+    for name, (R, t) in POSES.items():
+        img, _ = render_board_image(
+            board, FISHEYE.project, FISHEYE.unproject, R, t, W, H, supersample=2
+        )
+        paths.append(str(tmp_path / f"{name}.png"))
+        cv2.imwrite(paths[-1], img)
+    paths.append(str(tmp_path / "blank.png"))
+    cv2.imwrite(paths[-1], np.full((H, W), 128, np.uint8))
+    ds, rep = detect_images(paths, board, progress=True)
+    assert ds["format"] == "gtsam-sphere/dataset@1" and ds["units"] == "m"
+    assert ds["camera"] == {"width": W, "height": H}
+    assert [i["id"] for i in ds["images"]] == ["mild", "oblique"]
+    assert rep.used == [("mild", 24), ("oblique", 24)]
+    assert rep.skipped == [(paths[2], "no target found")]
+    assert all(t["sigma"] == 0 for t in ds["targets"]) and len(ds["targets"]) == 24
+    assert "[" in capsys.readouterr().err  # progress bar on stderr
+
+    parser = argparse.ArgumentParser()
+    add_cli_arguments(parser)
+    out = tmp_path / "ds.json"
+    args = parser.parse_args([*paths, "--board", board.text, "-o", str(out), "--no-progress"])
+    assert run_cli(args) == 0
+    written = json.loads(out.read_text())
+    assert written["images"] == ds["images"]
+    assert "skipped: 1" in capsys.readouterr().out
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".tmp_")]
+    bad = parser.parse_args([*paths, "--board", "chessboard:4x6", "-o", str(out)])
+    assert run_cli(bad) == 2
+
+
+# ------------------------------------------------------------------ real fisheye images
+
+
+@pytest.mark.parametrize("folder, square", [("fish_1", 0.0325), ("fish_2", 0.117)])
+def test_real_fisheye_images(folder, square):
+    all_images = sorted((DATA / "images" / folder).glob("*.jpg"))
+    if not all_images:
+        pytest.skip(f"real images absent: {DATA / 'images' / folder} (shared data not mounted)")
+    # checkerboard_sizes.txt says 5x7 squares, but the printed board has 7x9 squares
+    # (6x8 inner corners): a 4x6 search locks onto arbitrary sub-grids (see module report).
+    board = BoardSpec.parse(f"chessboard:6x8:{square}")
+    images = all_images[:6]  # a subset keeps the file fast; all 31 images pass as well
+    ds, rep = detect_images([str(p) for p in images], board, progress=False)
+    print(f"{folder}: {len(rep.used)}/{len(images)} images, {rep.n_observations} corners")
+    assert len(rep.used) >= len(images) - 1
+    assert all(n == 48 for _, n in rep.used)
+    # Every detected corner is a real saddle and the grid is regular (no sub-grid slips).
+    from gtsam_sphere.detect import saddle_score
+
+    by_id = {p.stem: p for p in images}
+    for img_entry in ds["images"]:
+        gray = cv2.imread(str(by_id[img_entry["id"]]), 0)
+        uv = np.array([o["uv"] for o in img_entry["observations"]])
+        score, _ = saddle_score(gray, uv, radius=3.0)
+        assert np.median(score) > 0.6, img_entry["id"]

@@ -1,0 +1,219 @@
+"""Tests of gtsam_sphere.initialize on a tiny local "inside-out room" simulator."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from gtsam_sphere.initialize import (
+    InitialisationResult,
+    bearings_from_pixels,
+    initialize_poses,
+)
+
+
+def _random_rotation(rng: np.random.Generator) -> np.ndarray:
+    q, r = np.linalg.qr(rng.normal(size=(3, 3)))
+    q = q @ np.diag(np.sign(np.diag(r)))
+    return q if np.linalg.det(q) > 0 else -q
+
+
+def _room_targets(rng: np.random.Generator, n: int) -> np.ndarray:
+    """Targets on the walls, floor and ceiling of a 6 x 5 x 3 m room (metres)."""
+    half = np.array([3.0, 2.5, 1.5])
+    pts = rng.uniform(-half, half, size=(n, 3))
+    axis = rng.integers(0, 3, size=n)
+    side = rng.choice([-1.0, 1.0], size=n)
+    pts[np.arange(n), axis] = side * half[axis]
+    return pts
+
+
+def _project(p_cam: np.ndarray, mapping: str, f_px: float, pp: np.ndarray, max_alpha: float):
+    """Pixels of camera-frame points and a visibility mask."""
+    rho = np.hypot(p_cam[:, 0], p_cam[:, 1])
+    alpha = np.arctan2(rho, p_cam[:, 2])
+    if mapping == "equidistant":
+        r = f_px * alpha
+    elif mapping == "pinhole":
+        r = f_px * np.tan(np.minimum(alpha, 1.5))
+    else:  # sphere
+        r = f_px * np.sin(alpha)
+    safe = np.where(rho > 0, rho, 1.0)
+    uv = pp + r[:, None] * p_cam[:, :2] / safe[:, None]
+    return uv, alpha <= max_alpha
+
+
+def simulate(
+    seed: int,
+    mapping: str,
+    f_px: float,
+    fov_deg: float,
+    width: int,
+    height: int,
+    n_images: int,
+    n_targets: int,
+    target_noise_m: float = 0.01,
+    pixel_noise_px: float = 0.3,
+    blunder_fraction: float = 0.03,
+):
+    """Synthetic dataset: random poses inside a room, targets on its surfaces."""
+    rng = np.random.default_rng(seed)
+    xyz_true = _room_targets(rng, n_targets)
+    pp = np.array([(width - 1) / 2.0, (height - 1) / 2.0])
+    rots, trans, uv_all, img_all, tgt_all = [], [], [], [], []
+    for i in range(n_images):
+        rot = _random_rotation(rng)
+        centre = rng.uniform([-1.0, -1.0, -0.5], [1.0, 1.0, 0.5])
+        t = -rot @ centre
+        p_cam = xyz_true @ rot.T + t
+        uv, vis = _project(p_cam, mapping, f_px, pp, np.radians(fov_deg) / 2)
+        vis &= (uv[:, 0] > -0.5) & (uv[:, 0] < width - 0.5)
+        vis &= (uv[:, 1] > -0.5) & (uv[:, 1] < height - 0.5)
+        idx = np.flatnonzero(vis)
+        rots.append(rot)
+        trans.append(t)
+        uv_all.append(uv[idx] + rng.normal(scale=pixel_noise_px, size=(idx.size, 2)))
+        img_all.append(np.full(idx.size, i))
+        tgt_all.append(idx)
+    uv = np.concatenate(uv_all)
+    n_obs = uv.shape[0]
+    blunder = rng.random(n_obs) < blunder_fraction
+    offset = rng.normal(size=(n_obs, 2))
+    offset *= rng.uniform(20, 60, size=n_obs)[:, None] / np.linalg.norm(offset, axis=1)[:, None]
+    uv[blunder] += offset[blunder]
+    xyz_approx = xyz_true + rng.normal(scale=target_noise_m, size=xyz_true.shape)
+    return dict(
+        uv_px=uv,
+        obs_image=np.concatenate(img_all),
+        obs_target=np.concatenate(tgt_all),
+        target_xyz=xyz_approx,
+        width=width,
+        height=height,
+        n_images=n_images,
+        R=np.array(rots),
+        t=np.array(trans),
+    )
+
+
+def _pose_errors(res: InitialisationResult, data: dict, images) -> tuple[float, float]:
+    """Worst rotation error (deg) and camera-centre error (m) over ``images``."""
+    worst_rot, worst_pos = 0.0, 0.0
+    for i in images:
+        r_est, t_est = res.cam_from_world_R[i], res.cam_from_world_t[i]
+        r_true, t_true = data["R"][i], data["t"][i]
+        cos = (np.trace(r_est.T @ r_true) - 1) / 2
+        worst_rot = max(worst_rot, np.degrees(np.arccos(np.clip(cos, -1, 1))))
+        c_est, c_true = -r_est.T @ t_est, -r_true.T @ t_true
+        worst_pos = max(worst_pos, float(np.linalg.norm(c_est - c_true)))
+    return worst_rot, worst_pos
+
+
+def _inputs(data: dict) -> dict:
+    keys = ("uv_px", "obs_image", "obs_target", "target_xyz", "width", "height", "n_images")
+    return {k: data[k] for k in keys}
+
+
+@pytest.mark.parametrize("mapping", ["pinhole", "equidistant", "sphere"])
+def test_bearings_from_pixels_round_trip(mapping):
+    rng = np.random.default_rng(3)
+    f_px, pp = 300.0, np.array([400.0, 300.0])
+    max_alpha = {"pinhole": 1.4, "equidistant": 3.0, "sphere": np.pi / 2}[mapping]
+    alpha = rng.uniform(0, max_alpha, 200)
+    phi = rng.uniform(-np.pi, np.pi, 200)
+    rays = np.stack([np.sin(alpha) * np.cos(phi), np.sin(alpha) * np.sin(phi), np.cos(alpha)], 1)
+    uv, _ = _project(rays, mapping, f_px, pp, np.pi)
+    back = bearings_from_pixels(uv, mapping, f_px, pp)
+    np.testing.assert_allclose(back, rays, atol=1e-9)
+    np.testing.assert_allclose(bearings_from_pixels(pp[None], mapping, f_px, pp), [[0, 0, 1.0]])
+
+
+def test_bearings_outside_domain_are_nan():
+    pp = np.zeros(2)
+    rays = bearings_from_pixels(np.array([[150.0, 0.0], [50.0, 0.0]]), "sphere", 100.0, pp)
+    assert np.all(np.isnan(rays[0])) and np.all(np.isfinite(rays[1]))
+    rays = bearings_from_pixels(np.array([[400.0, 0.0]]), "equidistant", 100.0, pp)
+    assert np.all(np.isnan(rays))
+    with pytest.raises(ValueError, match="unknown mapping"):
+        bearings_from_pixels(np.zeros((1, 2)), "fisheye??", 100.0, pp)
+
+
+def _check_case(data, res, expect_mapping, f_true, tol_deg=1.0, tol_m=0.05):
+    assert res.mapping == expect_mapping
+    assert abs(res.f_px / f_true - 1) < 0.03
+    good = [i for i in range(data["n_images"]) if i not in res.failures]
+    assert res.ok[good].all()
+    # well-observed images (>= 50 targets): within ~1 deg / 5 cm; all: within 3 deg / 10 cm
+    counts = np.bincount(data["obs_image"], minlength=data["n_images"])
+    rot_err, pos_err = _pose_errors(res, data, [i for i in good if counts[i] >= 50])
+    assert rot_err < tol_deg, rot_err
+    assert pos_err < tol_m, pos_err
+    rot_err, pos_err = _pose_errors(res, data, good)
+    assert rot_err < 3 * tol_deg and pos_err < 2 * tol_m, (rot_err, pos_err)
+    # most observations of initialised images are inliers
+    mask = res.ok[data["obs_image"]]
+    assert res.inlier_mask[mask].mean() > 0.85
+    assert not res.inlier_mask[~mask].any()
+
+
+def test_equidistant_200deg_lens_with_two_observation_image():
+    data = simulate(
+        seed=10,
+        mapping="equidistant",
+        f_px=300.0,
+        fov_deg=200.0,
+        width=1200,
+        height=1000,
+        n_images=10,
+        n_targets=200,
+    )
+    # image 3 keeps only 2 observations
+    keep = (data["obs_image"] != 3) | (np.cumsum(data["obs_image"] == 3) <= 2)
+    for key in ("uv_px", "obs_image", "obs_target"):
+        data[key] = data[key][keep]
+    messages: list[str] = []
+    res = initialize_poses(**_inputs(data), rng=np.random.default_rng(0), progress=messages.append)
+    assert messages
+    assert 3 in res.failures and "only 2 observations" in res.failures[3]
+    assert not res.ok[3] and np.isnan(res.cam_from_world_R[3]).all()
+    assert len(res.failures) == 1
+    # there really are points behind the camera in this data
+    _check_case(data, res, "equidistant", 300.0)
+
+
+def test_pinhole_70deg_lens():
+    f_px = 500.0 / np.tan(np.radians(35.0))
+    data = simulate(
+        seed=11,
+        mapping="pinhole",
+        f_px=f_px,
+        fov_deg=120.0,  # clipped by the 1000 x 750 frame: ~70 deg horizontally
+        width=1000,
+        height=750,
+        n_images=8,
+        n_targets=1500,
+    )
+    res = initialize_poses(**_inputs(data), rng=np.random.default_rng(1))
+    assert not res.failures
+    _check_case(data, res, "pinhole", f_px)
+
+
+def test_no_image_can_be_initialised_raises():
+    data = simulate(1, "pinhole", 500.0, 90.0, 800, 600, 3, 300)
+    keep = np.zeros(data["obs_image"].size, bool)
+    for i in range(3):
+        keep[np.flatnonzero(data["obs_image"] == i)[:2]] = True
+    for key in ("uv_px", "obs_image", "obs_target"):
+        data[key] = data[key][keep]
+    with pytest.raises(ValueError, match="no image can be initialised"):
+        initialize_poses(**_inputs(data))
+
+
+def test_bad_shapes_raise():
+    with pytest.raises(ValueError, match="uv_px"):
+        initialize_poses(
+            np.zeros((4, 3)), np.zeros(4, int), np.zeros(4, int), np.zeros((1, 3)), 100, 100, 1
+        )
+    with pytest.raises(ValueError, match="obs_target"):
+        initialize_poses(
+            np.zeros((4, 2)), np.zeros(4, int), np.full(4, 5), np.zeros((1, 3)), 100, 100, 1
+        )

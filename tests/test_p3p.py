@@ -1,0 +1,161 @@
+"""Tests of gtsam_sphere.p3p: the minimal solver and RANSAC, for bearings in any direction."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from gtsam_sphere.p3p import PoseResult, angular_errors_rad, p3p, ransac_pose
+
+
+def _random_rotation(rng: np.random.Generator) -> np.ndarray:
+    q, r = np.linalg.qr(rng.normal(size=(3, 3)))
+    q = q @ np.diag(np.sign(np.diag(r)))
+    return q if np.linalg.det(q) > 0 else -q
+
+
+def _bearings_at(off_axis_rad: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Unit bearings at the given angles from +z, random azimuth."""
+    phi = rng.uniform(-np.pi, np.pi, off_axis_rad.shape)
+    s = np.sin(off_axis_rad)
+    return np.stack([s * np.cos(phi), s * np.sin(phi), np.cos(off_axis_rad)], axis=-1)
+
+
+def _scene(rng, off_axis_rad):
+    """Random pose and world points seen along bearings at ``off_axis_rad``."""
+    rot = _random_rotation(rng)
+    t = rng.normal(size=3)
+    f = _bearings_at(np.asarray(off_axis_rad, dtype=float), rng)
+    dist = rng.uniform(0.5, 5.0, len(f))
+    p_cam = f * dist[:, None]
+    x = (p_cam - t) @ rot  # rot.T @ (p_cam - t), row-wise
+    return rot, t, f, x
+
+
+def _closest(solutions, rot, t) -> float:
+    return min(max(np.abs(r - rot).max(), np.abs(tt - t).max()) for r, tt in solutions)
+
+
+@pytest.mark.parametrize(
+    "off_axis_deg",
+    [
+        (0.0, 10.0, 30.0),  # narrow, one on the axis
+        (5.0, 45.0, 80.0),
+        (90.0, 90.0, 30.0),  # exactly sideways
+        (120.0, 150.0, 170.0),  # all behind the camera
+        (10.0, 100.0, 175.0),  # mixed hemispheres
+    ],
+)
+def test_p3p_exact_recovery(off_axis_deg):
+    rng = np.random.default_rng(abs(hash(off_axis_deg)) % 2**32)
+    for _ in range(50):
+        rot, t, f, x = _scene(rng, np.radians(off_axis_deg))
+        sols = p3p(f, x)
+        assert 1 <= len(sols) <= 4
+        assert _closest(sols, rot, t) < 1e-9
+        for r, tt in sols:  # every solution is a rotation and explains the 3 bearings
+            np.testing.assert_allclose(r @ r.T, np.eye(3), atol=1e-9)
+            assert np.linalg.det(r) > 0
+            assert angular_errors_rad(f, x, r, tt).max() < 1e-7
+
+
+def test_p3p_random_directions_many():
+    rng = np.random.default_rng(7)
+    for _ in range(500):
+        rot, t, f, x = _scene(rng, rng.uniform(0, np.radians(178.0), 3))
+        sols = p3p(f, x)
+        assert sols and _closest(sols, rot, t) < 1e-9
+
+
+def test_p3p_accepts_unnormalised_bearings():
+    rng = np.random.default_rng(8)
+    rot, t, f, x = _scene(rng, np.radians([20.0, 60.0, 130.0]))
+    assert _closest(p3p(f * [[2.0], [0.5], [7.0]], x), rot, t) < 1e-9
+
+
+def test_p3p_degenerate_inputs_return_empty():
+    rng = np.random.default_rng(9)
+    f = _bearings_at(np.radians([10.0, 40.0, 70.0]), rng)
+    collinear = np.array([[0.0, 0.0, 1.0], [1.0, 1.0, 2.0], [2.0, 2.0, 3.0]])
+    assert p3p(f, collinear) == []
+    duplicate = f.copy()
+    duplicate[1] = duplicate[0]
+    assert p3p(duplicate, rng.normal(size=(3, 3))) == []
+    antipodal = f.copy()
+    antipodal[2] = -antipodal[0]
+    assert p3p(antipodal, rng.normal(size=(3, 3))) == []
+    coincident = np.zeros((3, 3))
+    assert p3p(f, coincident) == []
+    assert p3p(np.full((3, 3), np.nan), rng.normal(size=(3, 3))) == []
+
+
+def _ransac_scene(rng, n, outlier_fraction, max_off_axis_deg=170.0, noise_rad=0.0):
+    rot = _random_rotation(rng)
+    t = rng.normal(size=3)
+    f = _bearings_at(rng.uniform(0, np.radians(max_off_axis_deg), n), rng)
+    p_cam = f * rng.uniform(1.0, 5.0, n)[:, None]
+    x = (p_cam - t) @ rot
+    meas = f + rng.normal(scale=noise_rad, size=f.shape)
+    n_out = int(round(outlier_fraction * n))
+    out = rng.permutation(n)[:n_out]
+    meas[out] = rng.normal(size=(n_out, 3))
+    meas /= np.linalg.norm(meas, axis=1, keepdims=True)
+    is_out = np.zeros(n, bool)
+    is_out[out] = True
+    return rot, t, meas, x, is_out
+
+
+def _rot_angle(a, b) -> float:
+    return float(np.arccos(np.clip((np.trace(a.T @ b) - 1) / 2, -1, 1)))
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_ransac_pose_30_percent_outliers(seed):
+    rng = np.random.default_rng(seed)
+    rot, t, f, x, is_out = _ransac_scene(rng, 120, 0.3, noise_rad=2e-4)
+    res = ransac_pose(f, x, threshold_rad=2e-3, rng=rng)
+    assert isinstance(res, PoseResult) and res.success
+    assert _rot_angle(res.R, rot) < 1e-3
+    assert np.linalg.norm(res.t - t) < 1e-3 * max(1.0, np.linalg.norm(t))
+    # every true inlier found; random outliers essentially never within 2 mrad
+    assert res.inlier_mask[~is_out].all()
+    assert res.inlier_mask[is_out].sum() <= 1
+    assert res.n_inliers == res.inlier_mask.sum()
+    assert 0 < res.median_error_rad < 2e-3
+
+
+def test_ransac_pose_exact_data_is_exact_and_handles_nan_rows():
+    rng = np.random.default_rng(4)
+    rot, t, f, x, _ = _ransac_scene(rng, 40, 0.0)
+    f[5] = np.nan
+    res = ransac_pose(f, x, threshold_rad=1e-6, rng=rng)
+    assert res.success and res.n_inliers == 39 and not res.inlier_mask[5]
+    assert _rot_angle(res.R, rot) < 1e-9 and np.abs(res.t - t).max() < 1e-9
+
+
+def test_ransac_pose_too_few_points_is_a_reported_failure():
+    rng = np.random.default_rng(5)
+    rot, t, f, x, _ = _ransac_scene(rng, 3, 0.0)
+    res = ransac_pose(f, x, threshold_rad=1e-3, rng=rng)
+    assert not res.success and res.n_inliers == 0
+    assert "only 3 usable observations" in res.reason
+    assert res.inlier_mask.shape == (3,) and not res.inlier_mask.any()
+
+
+def test_ransac_pose_pure_noise_fails_cleanly():
+    rng = np.random.default_rng(6)
+    f = rng.normal(size=(30, 3))
+    f /= np.linalg.norm(f, axis=1, keepdims=True)
+    x = rng.normal(size=(30, 3))
+    res = ransac_pose(f, x, threshold_rad=1e-4, rng=rng, max_iterations=200, min_inliers=10)
+    assert not res.success and "inliers of 30" in res.reason
+
+
+def test_angular_errors_batched_matches_single():
+    rng = np.random.default_rng(7)
+    rot, t, f, x, _ = _ransac_scene(rng, 10, 0.5)
+    rots = np.stack([rot, _random_rotation(rng)])
+    ts = np.stack([t, rng.normal(size=3)])
+    both = angular_errors_rad(f, x, rots, ts)
+    np.testing.assert_allclose(both[1], angular_errors_rad(f, x, rots[1], ts[1]))
+    assert both.shape == (2, 10) and np.all((both >= 0) & (both <= np.pi))
