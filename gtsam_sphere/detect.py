@@ -281,8 +281,13 @@ def _subpix(gray: np.ndarray, pts: np.ndarray, half_win: int) -> np.ndarray:
 
 
 def _saddle_refine(
-    gray: np.ndarray, pts: np.ndarray, radius: int = 2, sigma: float = 1.0, max_move: float = 3.0
-) -> np.ndarray:
+    gray: np.ndarray,
+    pts: np.ndarray,
+    radius: int = 2,
+    sigma: float = 1.0,
+    max_move: float = 3.0,
+    return_mask: bool = False,
+):
     """Polish X-corner positions by fitting a quadratic saddle to the smoothed image.
 
     The image is smoothed with a Gaussian (``sigma`` pixels); around each estimate a
@@ -305,10 +310,12 @@ def _saddle_refine(
     -------
     ndarray, shape (N, 2)
         Refined positions in pixels.
+    ndarray of bool, shape (N,)
+        Only with ``return_mask``: True where the saddle fit succeeded.
     """
     pts = np.asarray(pts, dtype=np.float64).reshape(-1, 2)
     if len(pts) == 0:
-        return pts.copy()
+        return (pts.copy(), np.zeros(0, dtype=bool)) if return_mask else pts.copy()
     g = cv2.GaussianBlur(gray.astype(np.float32), (0, 0), sigma)
     off = np.arange(-radius, radius + 1, dtype=np.float64)
     xx, yy = (a.ravel() for a in np.meshgrid(off, off))
@@ -333,6 +340,8 @@ def _saddle_refine(
             break
     bad = ~good | (np.linalg.norm(out - pts, axis=1) > max_move)
     out[bad] = pts[bad]
+    if return_mask:
+        return out, ~bad
     return out
 
 
@@ -421,7 +430,14 @@ def _detect_charuco(gray: np.ndarray, board: BoardSpec) -> dict[str, np.ndarray]
     ids = np.asarray(ch_ids).ravel().astype(int)
     # OpenCV refines with a fixed cornerSubPix window that the markers and curved
     # fisheye edges bias (0.1-0.5 px on rendered boards): polish with a local saddle fit.
-    refined = _saddle_refine(gray, pts)
+    # Corners whose fit fails are retried from a small-window cornerSubPix estimate and
+    # dropped if they still fail (OpenCV's estimate is then often ~1 px off).
+    refined, ok = _saddle_refine(gray, pts, return_mask=True)
+    if not np.all(ok):
+        retry, ok2 = _saddle_refine(gray, _subpix(gray, pts[~ok], 2), return_mask=True)
+        refined[~ok] = retry
+        ok[~ok] = ok2
+        refined, ids = refined[ok], ids[ok]
     return {f"C{i:03d}": refined[k] for k, i in enumerate(ids)}
 
 
