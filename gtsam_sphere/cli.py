@@ -158,8 +158,9 @@ def cmd_demo(args) -> int:
         tv = truth_cam.get(key, float("nan")) if isinstance(truth_cam, dict) else float("nan")
         print(f"  {name:<22}{est:>12.3f}{tv:>12.3f}")
     print(
-        f"\n  check points: RMSE X/Y/Z (mm) {rep.rmse_xyz[0] * 1e3:.2f} / {rep.rmse_xyz[1] * 1e3:.2f}"
-        f" / {rep.rmse_xyz[2] * 1e3:.2f}, 3D {rep.rmse_3d * 1e3:.2f} ({len(rep.ids)} points)"
+        "\n  check points: RMSE X/Y/Z (mm) "
+        + " / ".join(f"{v * 1e3:.2f}" for v in rep.rmse_xyz)
+        + f", 3D {rep.rmse_3d * 1e3:.2f} ({len(rep.ids)} points)"
     )
     _print_statistics(calib.statistics)
     return 0 if calib.statistics["converged"] else 1
@@ -195,6 +196,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("checkpoints")
     p.set_defaults(func=cmd_evaluate)
 
+    from . import compare
+
+    p = sub.add_parser("compare", help="the paper's Table 1/2 rows on one dataset")
+    compare.add_cli_arguments(p)
+    p.set_defaults(func=compare.run_cli)
+    try:
+        from . import report
+
+        p = sub.add_parser("report", help="plots and a page for a calibration")
+        report.add_cli_arguments(p)
+        p.set_defaults(func=report.run_cli)
+    except ImportError:  # pragma: no cover
+        pass
     try:
         from . import simulate
 

@@ -96,8 +96,8 @@ class KNNCorrection(RegressorMixin, BaseEstimator):
             "n_neighbors": self.n_neighbors_,
             "weights": self.weights_,
             "cv_rmse_px": self.cv_rmse_px_,
-            "uv_px": self.uv_px_,
-            "corrections_px": self.corrections_px_,
+            "uv_px": self.uv_px_.tolist(),
+            "corrections_px": self.corrections_px_.tolist(),
         }
 
 
