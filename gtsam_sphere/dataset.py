@@ -364,6 +364,7 @@ def write_json_atomic(path: str | os.PathLike, doc: Any, indent: int | None = 1)
             fh.write("\n")
             fh.flush()
             os.fsync(fh.fileno())
+        os.chmod(tmp, 0o644)
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):

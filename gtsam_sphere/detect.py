@@ -46,10 +46,7 @@ from __future__ import annotations
 
 import argparse
 import csv
-import json
-import os
 import sys
-import tempfile
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -859,18 +856,10 @@ def detect_images(
 
 
 def write_json_atomic(obj: dict, path: str) -> None:
-    """Write ``obj`` as JSON to ``path`` atomically (temporary file + ``os.replace``)."""
-    target = os.path.abspath(path)
-    fd, tmp = tempfile.mkstemp(prefix=".tmp_", suffix=".json", dir=os.path.dirname(target))
-    try:
-        with os.fdopen(fd, "w") as fh:
-            json.dump(obj, fh, indent=1)
-            fh.write("\n")
-        os.replace(tmp, target)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    """Write ``obj`` as JSON to ``path`` atomically (``dataset.write_json_atomic``)."""
+    from .dataset import write_json_atomic as _write
+
+    _write(path, obj)
 
 
 # --------------------------------------------------------------------------------------

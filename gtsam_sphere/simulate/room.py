@@ -26,10 +26,8 @@ dataset's targets, preferring those seen in at least two images.
 
 from __future__ import annotations
 
-import json
 import math
 import os
-import tempfile
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -566,17 +564,9 @@ def _jsonable(value: Any) -> Any:
 
 
 def _write_json_atomic(path: Path, document: dict[str, Any]) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            json.dump(document, fh, indent=1)
-            fh.write("\n")
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    from ..dataset import write_json_atomic
+
+    write_json_atomic(path, document)
 
 
 def write_simulation(sim: Simulation, out_dir: str | os.PathLike[str]) -> dict[str, Path]:
