@@ -196,35 +196,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("checkpoints")
     p.set_defaults(func=cmd_evaluate)
 
-    from . import compare
+    from . import compare, detect, report, simulate
 
-    p = sub.add_parser("compare", help="the paper's Table 1/2 rows on one dataset")
-    compare.add_cli_arguments(p)
-    p.set_defaults(func=compare.run_cli)
-    try:
-        from . import report
-
-        p = sub.add_parser("report", help="plots and a page for a calibration")
-        report.add_cli_arguments(p)
-        p.set_defaults(func=report.run_cli)
-    except ImportError:  # pragma: no cover
-        pass
-    try:
-        from . import simulate
-
-        p = sub.add_parser("simulate", help="simulate the paper's room experiment")
-        simulate.add_cli_arguments(p)
-        p.set_defaults(func=simulate.run_cli)
-    except ImportError:  # pragma: no cover
-        pass
-    try:
-        from . import detect
-
-        p = sub.add_parser("detect", help="detect board corners / markers in images")
-        detect.add_cli_arguments(p)
-        p.set_defaults(func=detect.run_cli)
-    except ImportError:  # pragma: no cover
-        pass
+    # subcommands whose module owns its arguments (add_cli_arguments / run_cli)
+    for name, module, help_text in (
+        ("compare", compare, "the paper's Table 1/2 rows on one dataset"),
+        ("report", report, "plots and a page for a calibration"),
+        ("simulate", simulate, "simulate the paper's room experiment"),
+        ("detect", detect, "detect board corners / markers in images"),
+    ):
+        p = sub.add_parser(name, help=help_text)
+        module.add_cli_arguments(p)
+        p.set_defaults(func=module.run_cli)
     return parser
 
 
