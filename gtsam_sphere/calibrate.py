@@ -15,7 +15,7 @@ import gtsam
 import numpy as np
 
 from .calibration import Calibration
-from .camera import Model, SphereCamera, parse_brown_terms
+from .camera import ALPHA0_RAD, DEFAULT_MODEL, Model, SphereCamera, parse_brown_terms, radial_terms
 from .dataset import Dataset
 from .geometry import fit_similarity, incidence_deg
 from .graph import (
@@ -30,6 +30,11 @@ from .graph import (
 )
 from .optimize import OptimizationResult, OptimizerKind, OptimizerOptions, make_ordering, optimize
 
+#: Brown terms of the brown models unless told otherwise
+BROWN_DEFAULT_TERMS = ("k1", "k2", "k3", "p1", "p2")
+#: non-radial terms of the radial models unless told otherwise: decentering and affinity
+RADIAL_DEFAULT_TERMS = ("p1", "p2", "a1", "a2")
+
 # median of the norm of a 2-D standard normal vector: sqrt(2 ln 2)
 _MEDIAN_CHI2 = math.sqrt(2.0 * math.log(2.0))
 
@@ -41,9 +46,14 @@ class CalibrationOptions:
     Attributes
     ----------
     model : Model
-        ``sphere`` (IOP only), ``brown`` (IOP + ``brown_terms``), ``sphere+knn``.
-    brown_terms : tuple of str
-        Brown additional parameters for ``model="brown"`` (default k1,k2,k3,p1,p2).
+        ``sphere`` (IOP only), ``brown`` (IOP + ``brown_terms``), ``radial``
+        (a radial mapping + the non-radial ``brown_terms``), each ``+knn``.
+    brown_terms : tuple of str or None
+        Brown additional parameters (Eq. 5). ``None`` picks the model's
+        default: k1,k2,k3,p1,p2 for ``brown``; decentering and affinity
+        p1,p2,a1,a2 for ``radial`` (which only takes the non-radial terms).
+    radial_terms : int
+        Number of coefficients ``g3, g5, ...`` of the radial mapping (0-6).
     optimizer : OptimizerKind
     loss : Loss
     loss_threshold : float
@@ -57,8 +67,8 @@ class CalibrationOptions:
         Seed of every random choice (RANSAC, cross-validation).
     """
 
-    model: Model = Model.SPHERE
-    brown_terms: tuple[str, ...] = ("k1", "k2", "k3", "p1", "p2")
+    model: Model = DEFAULT_MODEL
+    brown_terms: tuple[str, ...] | None = None
     optimizer: OptimizerKind = OptimizerKind.LM
     loss: Loss = Loss.HUBER
     loss_threshold: float = 2.45
@@ -69,6 +79,7 @@ class CalibrationOptions:
     knn: dict = field(default_factory=dict)
     fixed_intrinsics: tuple[float, ...] | None = None
     covariance: bool = True
+    radial_terms: int = 4
 
     def __post_init__(self):
         self.model = Model(self.model)
@@ -76,6 +87,16 @@ class CalibrationOptions:
         self.loss = Loss(self.loss)
         if isinstance(self.brown_terms, str):
             self.brown_terms = parse_brown_terms(self.brown_terms)
+        if self.brown_terms is None:
+            radial = self.model.uses_radial
+            self.brown_terms = RADIAL_DEFAULT_TERMS if radial else BROWN_DEFAULT_TERMS
+        self.brown_terms = tuple(self.brown_terms)
+        if self.model.uses_radial and any(t in ("k1", "k2", "k3") for t in self.brown_terms):
+            raise ValueError(
+                f"model {self.model} estimates the radial mapping g; radial Brown terms "
+                f"{[t for t in self.brown_terms if t.startswith('k')]} would duplicate it: "
+                "choose among p1, p2, a1, a2"
+            )
 
 
 @dataclass
@@ -200,15 +221,7 @@ def repair_poses(
     from .p3p import ransac_pose
 
     theta = adj.values.atVector(INTRINSICS_KEY)
-    camera = SphereCamera(
-        dataset.width,
-        dataset.height,
-        float(theta[0]),
-        float(theta[1]),
-        float(theta[2]),
-        brown=dict(zip(problem.brown_names, map(float, theta[3:]))),
-        brown_scale_px=problem.brown_scale_px,
-    )
+    camera = camera_from_theta(problem, theta, dataset.width, dataset.height)
     r = np.linalg.norm(adj.residuals_px, axis=1)
     xyz = problem.target_xyz.copy()
     for j in problem.free_targets:
@@ -244,6 +257,62 @@ def repair_poses(
         else:
             adj.values.update(pose_key(int(i)), old)
     return changed
+
+
+def camera_from_theta(
+    problem: BundleProblem, theta: np.ndarray, width: int, height: int, correction=None
+) -> SphereCamera:
+    """The :class:`SphereCamera` of intrinsics laid out as ``problem.intrinsics_names()``."""
+    names = problem.intrinsics_names()
+    vals = dict(zip(names, map(float, theta)))
+    radial = None
+    if problem.radial_names is not None:
+        radial = {n: vals[n] for n in problem.radial_names}
+    return SphereCamera(
+        width=width,
+        height=height,
+        xp=vals["xp_px"],
+        yp=vals["yp_px"],
+        c=vals["c_px"],
+        brown={n: vals[n] for n in problem.brown_names},
+        brown_scale_px=problem.brown_scale_px,
+        correction=correction,
+        radial=radial,
+    )
+
+
+def initial_radial(
+    uv_px: np.ndarray, points_cam: np.ndarray, principal_point_px: np.ndarray, n_terms: int
+) -> np.ndarray:
+    """Initial ``[c, g3, g5, ...]`` of the radial mapping from initial poses.
+
+    Linear least squares of ``|uv - pp| = c * g(alpha)`` over the observations
+    (N,2), (N,3), reweighted twice with Huber weights against poor initial
+    poses; falls back to equidistant (``g = alpha``) when the fit is not
+    usable.
+    """
+    r = np.linalg.norm(uv_px - principal_point_px, axis=1)
+    norm = np.linalg.norm(points_cam, axis=1)
+    alpha = np.arccos(np.clip(points_cam[:, 2] / np.where(norm > 0, norm, 1.0), -1, 1))
+    ok = np.isfinite(alpha) & np.isfinite(r) & (norm > 0)
+    t = alpha[ok] / ALPHA0_RAD
+    A = np.column_stack([alpha[ok]] + [ALPHA0_RAD * t ** (2 * i + 3) for i in range(n_terms)])
+    b = r[ok]
+    w = np.ones(len(b))
+    c_eq = float(np.sum(b * alpha[ok]) / max(np.sum(alpha[ok] ** 2), 1e-12))
+    fallback = np.concatenate([[c_eq], np.zeros(n_terms)])
+    if len(b) < 2 * (n_terms + 1):
+        return fallback
+    x = fallback
+    for _ in range(3):
+        sw = np.sqrt(w)
+        x = np.linalg.lstsq(A * sw[:, None], b * sw, rcond=None)[0]
+        res = np.abs(A @ x - b)
+        k = 2.0 * 1.4826 * max(float(np.median(res)), 1e-9)
+        w = np.where(res <= k, 1.0, k / np.maximum(res, 1e-300))
+    if not np.all(np.isfinite(x)) or x[0] <= 0:
+        return fallback
+    return np.concatenate([[x[0]], x[1:] / x[0]])
 
 
 def initial_principal_distance(
@@ -366,6 +435,10 @@ def calibrate(
     say(f"initial principal distance c = {c0:.1f} px")
 
     brown_names = options.brown_terms if options.model.uses_brown else ()
+    radial_names = None
+    if options.model.uses_radial:
+        radial_names = radial_terms(options.radial_terms)
+        brown_names = options.brown_terms
     problem = BundleProblem(
         obs_image=dataset.obs_image,
         obs_target=dataset.obs_target,
@@ -380,11 +453,17 @@ def calibrate(
         fixed_intrinsics=None
         if options.fixed_intrinsics is None
         else np.asarray(options.fixed_intrinsics, float),
+        radial_names=radial_names,
     )
     world_from_cam = [
         gtsam.Pose3(gtsam.Rot3(R), gtsam.Point3(*t)).inverse() for R, t in zip(init_R, init_t)
     ]
-    theta0 = np.concatenate([pp, [c0], np.zeros(len(brown_names))])
+    if radial_names is None:
+        theta0 = np.concatenate([pp, [c0], np.zeros(len(brown_names))])
+    else:
+        cg = initial_radial(dataset.uv_px, pc, pp, len(radial_names))
+        say(f"initial radial mapping: c = {cg[0]:.1f} px, g = {np.round(cg[1:], 4).tolist()}")
+        theta0 = np.concatenate([pp, cg, np.zeros(len(brown_names))])
     if problem.fixed_intrinsics is not None:
         theta0 = problem.fixed_intrinsics.copy()
     values = initial_values(problem, world_from_cam, theta0)
@@ -404,20 +483,23 @@ def calibrate(
 
         adj, correction, history = grey_box_loop(problem, adj, opt, options, say)
 
-    sigma_theta = None
+    cov_theta = None
     if options.covariance and problem.fixed_intrinsics is None:
         say("computing the precision of the intrinsics (marginal covariance)")
-        sigma_theta = intrinsics_sigma(problem, adj.values)
+        cov_theta = intrinsics_covariance(problem, adj.values)
     calib = _result(dataset, problem, adj, correction, history, options, n_input_images)
-    if sigma_theta is not None:
+    names = problem.intrinsics_names()
+    calib.statistics["intrinsics_names"] = names
+    if cov_theta is not None:
         calib.statistics["intrinsics_sigma"] = dict(
-            zip(problem.intrinsics_names(), map(float, sigma_theta))
+            zip(names, map(float, np.sqrt(np.diag(cov_theta))))
         )
+        calib.statistics["intrinsics_covariance"] = cov_theta
     return calib
 
 
-def intrinsics_sigma(problem: BundleProblem, values: gtsam.Values) -> np.ndarray | None:
-    """Standard deviations of the intrinsics from ``gtsam.Marginals`` (px / dimensionless).
+def intrinsics_covariance(problem: BundleProblem, values: gtsam.Values) -> np.ndarray | None:
+    """Covariance (K, K) of the intrinsics from ``gtsam.Marginals`` (px^2 / dimensionless).
 
     The graph is whitened with the estimated ``sigma_px`` and robust weights,
     so this is the a-posteriori precision. ``None`` if the system is singular.
@@ -428,22 +510,19 @@ def intrinsics_sigma(problem: BundleProblem, values: gtsam.Values) -> np.ndarray
         cov = marginals.marginalCovariance(INTRINSICS_KEY)
     except RuntimeError:
         return None
-    return np.sqrt(np.diag(cov))
+    return np.asarray(cov)
+
+
+def intrinsics_sigma(problem: BundleProblem, values: gtsam.Values) -> np.ndarray | None:
+    """Standard deviations (K,) of the intrinsics, see :func:`intrinsics_covariance`."""
+    cov = intrinsics_covariance(problem, values)
+    return None if cov is None else np.sqrt(np.diag(cov))
 
 
 def _result(dataset, problem, adj, correction, history, options, n_input_images) -> Calibration:
     values = adj.values
     theta = values.atVector(INTRINSICS_KEY)
-    camera = SphereCamera(
-        width=dataset.width,
-        height=dataset.height,
-        xp=float(theta[0]),
-        yp=float(theta[1]),
-        c=float(theta[2]),
-        brown=dict(zip(problem.brown_names, map(float, theta[3:]))),
-        brown_scale_px=problem.brown_scale_px,
-        correction=correction,
-    )
+    camera = camera_from_theta(problem, theta, dataset.width, dataset.height, correction)
     R, t = _poses_from_values(values, len(dataset.image_ids))
     xyz = dataset.target_xyz.copy()
     for j in problem.free_targets:

@@ -90,9 +90,14 @@ def camera_from_dict(cam: dict, source: str = "<calibration>") -> SphereCamera:
             c=float(cam["c_px"]),
             brown={k: float(v) for k, v in cam.get("brown", {}).items()},
             brown_scale_px=float(cam.get("brown_scale_px", 0.0)),
+            radial=None
+            if cam.get("mapping", "sphere") == "sphere"
+            else {k: float(v) for k, v in cam.get("radial", {}).items()},
         )
     except (KeyError, TypeError, ValueError) as exc:
         raise DatasetError(f"{source}: camera entry is incomplete or malformed ({exc})") from None
+    if cam.get("mapping", "sphere") not in ("sphere", "radial"):
+        raise DatasetError(f"{source}: unknown camera mapping {cam.get('mapping')!r}")
     if "correction" in cam:
         camera.correction = correction_from_dict(cam["correction"])
     return camera

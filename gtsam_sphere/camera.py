@@ -22,21 +22,34 @@ See ``docs/conventions.md`` for frames and the unprojection ambiguity past
 from __future__ import annotations
 
 import enum
+import math
 from dataclasses import dataclass, field
 from typing import Protocol
 
 import numpy as np
 
 BROWN_TERMS: tuple[str, ...] = ("k1", "k2", "k3", "p1", "p2", "a1", "a2")
+RADIAL_TERMS: tuple[str, ...] = ("g3", "g5", "g7", "g9", "g11", "g13")
+#: normalising angle of the radial mapping's polynomial (rad)
+ALPHA0_RAD = math.pi / 2
 
 
 class Model(enum.StrEnum):
-    """Camera models ``calibrate`` can estimate."""
+    """Camera models ``calibrate`` can estimate.
+
+    ``sphere``: the paper's sphere mapping, ``xp, yp, c`` only.
+    ``brown``: the sphere plus Brown (Eq. 5) terms.
+    ``radial``: a generic radial mapping ``c * g(alpha)`` (:func:`radial_g`)
+    plus optional decentering/affinity terms.
+    ``+knn``: a kNN correction learned from the residuals on top (the grey-box loop).
+    """
 
     SPHERE = "sphere"
     SPHERE_KNN = "sphere+knn"
     BROWN = "brown"
     BROWN_KNN = "brown+knn"
+    RADIAL = "radial"
+    RADIAL_KNN = "radial+knn"
 
     @property
     def uses_brown(self) -> bool:
@@ -44,9 +57,19 @@ class Model(enum.StrEnum):
         return self in (Model.BROWN, Model.BROWN_KNN)
 
     @property
+    def uses_radial(self) -> bool:
+        """The graph estimates the radial mapping ``g`` (else the sphere mapping)."""
+        return self in (Model.RADIAL, Model.RADIAL_KNN)
+
+    @property
     def uses_knn(self) -> bool:
         """A kNN correction is learned from the residuals (the grey-box loop)."""
-        return self in (Model.SPHERE_KNN, Model.BROWN_KNN)
+        return self in (Model.SPHERE_KNN, Model.BROWN_KNN, Model.RADIAL_KNN)
+
+
+#: the model ``calibrate`` estimates unless told otherwise: a radial mapping in the
+#: graph and a kNN correction for what remains (see README "Models")
+DEFAULT_MODEL = Model.RADIAL_KNN
 
 
 class Correction(Protocol):
@@ -147,6 +170,106 @@ def brown_distortion(
     return delta, J, scale_px * Jc
 
 
+def radial_terms(n: int) -> tuple[str, ...]:
+    """Names of the first ``n`` radial-mapping coefficients: ``("g3", "g5", ...)``."""
+    if not 0 <= n <= len(RADIAL_TERMS):
+        raise ValueError(f"the radial mapping has 0 to {len(RADIAL_TERMS)} terms, got {n}")
+    return RADIAL_TERMS[:n]
+
+
+def radial_g(alpha: np.ndarray, coeffs: np.ndarray, derivative: bool = False):
+    """Radial mapping ``g(alpha) = alpha + A0 * sum_i g_i (alpha / A0)^(2i+3)``, ``A0 = pi/2``.
+
+    ``c * g(alpha)`` is the geodesic distance (px) on the virtual sphere from
+    the principal point to the image point; ``g = alpha`` is equidistant.
+
+    Parameters
+    ----------
+    alpha : ndarray, shape (N,)
+        Incidence angles (rad).
+    coeffs : ndarray, shape (G,)
+        ``g3, g5, ...`` (dimensionless).
+    derivative : bool
+        Also return ``dg/dalpha`` (N,) and ``dg/dcoeffs`` (N, G).
+    """
+    t = np.asarray(alpha, float) / ALPHA0_RAD
+    g = np.array(alpha, float, copy=True)
+    G = len(coeffs)
+    powers = np.empty((len(t), G))
+    for i in range(G):
+        powers[:, i] = t ** (2 * i + 3)
+    g += ALPHA0_RAD * powers @ np.asarray(coeffs, float)
+    if not derivative:
+        return g
+    dg = np.ones_like(g)
+    for i in range(G):
+        dg += (2 * i + 3) * coeffs[i] * t ** (2 * i + 2)
+    return g, dg, ALPHA0_RAD * powers
+
+
+def ideal_projection(points_cam: np.ndarray, radial: np.ndarray | None, jacobians: bool = False):
+    """Ideal image point on a unit sphere (c = 1), relative to the principal point.
+
+    ``sphere`` mapping (``radial`` None, Eq. 1-4): ``m = P[:2] / |P|``.
+    ``radial`` mapping: ``m = g(alpha) * P[:2] / |P[:2]|`` with
+    :func:`radial_g`; smooth at the optical axis, injective up to 180 deg when
+    ``g`` increases. Rays behind the camera need no special case; the
+    antipode of the axis (alpha = 180 deg) is the one singular direction.
+
+    Parameters
+    ----------
+    points_cam : ndarray, shape (N, 3)
+        Camera frame (x right, y down, z forward), any direction, not 0.
+    radial : ndarray, shape (G,), or None
+    jacobians : bool
+        Also return ``dm/dP`` (N, 2, 3) and ``dm/dradial`` (N, 2, G).
+
+    Returns
+    -------
+    m : ndarray, shape (N, 2)
+        Multiply by ``c`` for pixels.
+    """
+    P = points_cam
+    norm = np.linalg.norm(P, axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        u = P / norm[:, None]
+    if radial is None:
+        m = u[:, :2]
+        if not jacobians:
+            return m
+        J_p = (np.eye(3)[None, :2, :] - u[:, :2, None] * u[:, None, :]) / norm[:, None, None]
+        return m, J_p, np.zeros((len(P), 2, 0))
+    rho = np.hypot(P[:, 0], P[:, 1])
+    alpha = np.arctan2(rho, P[:, 2])
+    sin_a = rho / norm
+    small = alpha < 1e-4
+    safe_sin = np.where(small, 1.0, sin_a)
+    out = radial_g(alpha, radial, derivative=jacobians)
+    g = out[0] if jacobians else out
+    kappa = (radial[0] / ALPHA0_RAD**2) if len(radial) else 0.0
+    # s = g / sin(alpha), smooth and even in alpha: series at the axis
+    s = np.where(small, 1.0 + (1.0 / 6.0 + kappa) * alpha**2, g / safe_sin)
+    m = s[:, None] * u[:, :2]
+    if not jacobians:
+        return m
+    _, dg, dg_dc = out
+    cos_a = P[:, 2] / norm
+    ds = np.where(
+        small,
+        2.0 * (1.0 / 6.0 + kappa) * alpha,
+        (dg * safe_sin - g * cos_a) / safe_sin**2,
+    )
+    with np.errstate(invalid="ignore", divide="ignore"):
+        direction = np.where(rho[:, None] > 0, P[:, :2] / rho[:, None], 0.0)
+    dalpha = np.empty((len(P), 3))
+    dalpha[:, :2] = direction * (P[:, 2] / norm**2)[:, None]
+    dalpha[:, 2] = -rho / norm**2
+    J_u = (np.eye(3)[None, :2, :] - u[:, :2, None] * u[:, None, :]) / norm[:, None, None]
+    J_p = s[:, None, None] * J_u + (u[:, :2] * ds[:, None])[:, :, None] * dalpha[:, None, :]
+    J_r = direction[:, :, None] * dg_dc[:, None, :]
+    return m, J_p, J_r
+
+
 def sphere_residual(
     theta: np.ndarray,
     brown_names: tuple[str, ...],
@@ -154,15 +277,16 @@ def sphere_residual(
     uv_px: np.ndarray,
     points_cam: np.ndarray,
     jacobians: bool = False,
+    radial_names: tuple[str, ...] | None = None,
 ):
     """Residual of the collinearity condition on the sphere, in pixels.
 
-    ``e = (uv - pp - brown(uv - pp)) - c * P[:2] / |P|`` with
-    ``theta = [xp, yp, c, *brown coefficients in brown_names order]``.
+    ``e = (uv - pp - brown(uv - pp)) - c * m(P)`` with ``m`` from
+    :func:`ideal_projection` and ``theta = [xp, yp, c, *radial, *brown]``.
 
     Parameters
     ----------
-    theta : ndarray, shape (3 + B,)
+    theta : ndarray, shape (3 + G + B,)
     brown_names : tuple of str, length B
     scale_px : float
         Brown normalisation radius (px).
@@ -171,37 +295,42 @@ def sphere_residual(
     points_cam : ndarray, shape (N, 3)
         Object points in the camera frame.
     jacobians : bool
-        Also return ``de/dtheta`` (N, 2, 3 + B) and ``de/dpoints_cam`` (N, 2, 3).
+        Also return ``de/dtheta`` (N, 2, 3 + G + B) and ``de/dpoints_cam`` (N, 2, 3).
+    radial_names : tuple of str (length G) or None
+        None: the paper's sphere mapping; a tuple: the radial mapping with
+        these coefficients (``()`` is equidistant).
 
     Returns
     -------
     e_px : ndarray, shape (N, 2)
     """
+    G = -1 if radial_names is None else len(radial_names)
     pp = theta[:2]
     c = theta[2]
-    coeffs = dict(zip(brown_names, theta[3:]))
+    radial = None if G < 0 else np.asarray(theta[3 : 3 + G], float)
+    b0 = 3 + max(G, 0)
+    coeffs = dict(zip(brown_names, theta[b0:]))
     xbar = uv_px - pp
-    norm = np.linalg.norm(points_cam, axis=1)
-    s = points_cam[:, :2] / norm[:, None]
-    if not brown_names:
-        e = xbar - c * s
-        if not jacobians:
-            return e
-        Jd = np.zeros((len(e), 2, 2))
-        Jc = np.zeros((len(e), 2, 0))
-    elif not jacobians:
-        return xbar - brown_distortion(xbar, coeffs, scale_px) - c * s
-    else:
+    if not jacobians:
+        m = ideal_projection(points_cam, radial)
+        if brown_names:
+            return xbar - brown_distortion(xbar, coeffs, scale_px) - c * m
+        return xbar - c * m
+    m, J_m, J_r = ideal_projection(points_cam, radial, jacobians=True)
+    n = len(m)
+    if brown_names:
         delta, Jd, Jc = brown_distortion(xbar, coeffs, scale_px, jacobians=True)
-        e = xbar - delta - c * s
-    n = len(e)
-    J_theta = np.empty((n, 2, 3 + len(brown_names)))
+        e = xbar - delta - c * m
+    else:
+        e = xbar - c * m
+        Jd = np.zeros((n, 2, 2))
+        Jc = np.zeros((n, 2, 0))
+    J_theta = np.empty((n, 2, b0 + len(brown_names)))
     J_theta[:, :, :2] = Jd - np.eye(2)
-    J_theta[:, :, 2] = -s
-    J_theta[:, :, 3:] = -Jc
-    u = points_cam / norm[:, None]
-    J_p = -(c / norm)[:, None, None] * (np.eye(3)[None, :2, :] - u[:, :2, None] * u[:, None, :])
-    return e, J_theta, J_p
+    J_theta[:, :, 2] = -m
+    J_theta[:, :, 3:b0] = -c * J_r
+    J_theta[:, :, b0:] = -Jc
+    return e, J_theta, -c * J_m
 
 
 @dataclass
@@ -222,6 +351,10 @@ class SphereCamera:
         Normalisation radius of the Brown terms (px).
     correction : Correction or None
         Learned measurement correction (``predict(uv_px) -> (N, 2)`` px).
+    radial : dict or None
+        ``None``: the paper's sphere mapping (``c * P[:2] / |P|``). A dict
+        ``{"g3": .., "g5": ..}``: the radial mapping ``c * g(alpha)`` of
+        :func:`radial_g` (``{}`` is equidistant).
     """
 
     width: int
@@ -232,6 +365,7 @@ class SphereCamera:
     brown: dict[str, float] = field(default_factory=dict)
     brown_scale_px: float = 0.0
     correction: Correction | None = None
+    radial: dict[str, float] | None = None
 
     def __post_init__(self) -> None:
         if self.brown_scale_px <= 0:
@@ -241,6 +375,16 @@ class SphereCamera:
     def principal_point_px(self) -> np.ndarray:
         """``(xp, yp)`` as a (2,) array."""
         return np.array([self.xp, self.yp])
+
+    @property
+    def mapping(self) -> str:
+        """``"sphere"`` or ``"radial"``."""
+        return "sphere" if self.radial is None else "radial"
+
+    def _radial_coeffs(self) -> np.ndarray | None:
+        if self.radial is None:
+            return None
+        return np.array([float(self.radial.get(t, 0.0)) for t in RADIAL_TERMS], float)
 
     def distortion_px(self, uv_px: np.ndarray) -> np.ndarray:
         """Total measurement correction at raw pixels (N, 2): Brown + learned, px."""
@@ -256,6 +400,29 @@ class SphereCamera:
         """Corrected image coordinates relative to the principal point, (N, 2) px."""
         uv = check_uv(uv_px)
         return uv - self.principal_point_px - self.distortion_px(uv)
+
+    def ideal_from_points(self, points_cam: np.ndarray, jacobians: bool = False):
+        """Ideal image coordinates (px, relative to the principal point) of camera-frame points.
+
+        ``ideal_from_points(P) == ideal_from_pixels(project(P))``: the model
+        without its measurement corrections, for factors with a frozen
+        calibration (compare with :meth:`ideal_from_pixels` of the measurement).
+
+        Parameters
+        ----------
+        points_cam : ndarray, shape (N, 3)
+        jacobians : bool
+            Also return ``d ideal / d points_cam``, shape (N, 2, 3) (px per unit).
+
+        Returns
+        -------
+        ideal_px : ndarray, shape (N, 2)
+        """
+        p = check_points_cam(points_cam)
+        out = ideal_projection(p, self._radial_coeffs(), jacobians=jacobians)
+        if not jacobians:
+            return self.c * out
+        return self.c * out[0], self.c * out[1]
 
     def project(
         self, points_cam: np.ndarray, max_iterations: int = 50, tol_px: float = 1e-9
@@ -282,9 +449,8 @@ class SphereCamera:
             NaN for the perspective centre itself (``|P| = 0``).
         """
         p = check_points_cam(points_cam)
-        norm = np.linalg.norm(p, axis=1)
         with np.errstate(invalid="ignore", divide="ignore"):
-            ideal = self.c * p[:, :2] / norm[:, None]
+            ideal = self.c * ideal_projection(p, self._radial_coeffs())
         pp = self.principal_point_px
         uv = pp + ideal
         if not self.brown and self.correction is None:
@@ -308,6 +474,16 @@ class SphereCamera:
                 break
         return uv
 
+    def max_alpha_rad(self) -> float:
+        """Largest incidence angle (rad) up to which the radial mapping increases (<= pi)."""
+        coeffs = self._radial_coeffs()
+        if coeffs is None:
+            return math.pi / 2
+        grid = np.linspace(0.0, math.pi, 2049)
+        _, dg, _ = radial_g(grid, coeffs, derivative=True)
+        bad = np.flatnonzero(dg <= 0)
+        return float(grid[bad[0] - 1]) if len(bad) else math.pi
+
     def unproject(self, uv_px: np.ndarray, hemisphere: float | np.ndarray = 1.0) -> np.ndarray:
         """Unit rays in the camera frame for raw pixels.
 
@@ -315,23 +491,50 @@ class SphereCamera:
         ----------
         uv_px : ndarray, shape (N, 2)
         hemisphere : float or ndarray (N,)
-            ``+1`` front half of the image sphere (incidence below 90 deg),
-            ``-1`` back half. The sphere's two halves share the image disc,
-            so a pixel alone cannot tell them apart; see
-            ``docs/conventions.md``.
+            Sphere mapping only: ``+1`` front half of the image sphere
+            (incidence below 90 deg), ``-1`` back half. The sphere's two
+            halves share the image disc, so a pixel alone cannot tell them
+            apart; see ``docs/conventions.md``. The radial mapping is
+            one-to-one up to :meth:`max_alpha_rad` and ignores it.
 
         Returns
         -------
         rays : ndarray, shape (N, 3)
-            NaN where the corrected point falls outside the sphere's disc
-            (radius ``c``).
+            NaN where the corrected point falls outside the model's image
+            (the sphere's disc of radius ``c``; beyond ``g(max_alpha)`` for
+            the radial mapping).
         """
         m = self.ideal_from_pixels(uv_px) / self.c
-        rho2 = (m**2).sum(1)
-        with np.errstate(invalid="ignore"):
-            z = np.sqrt(1.0 - rho2) * np.sign(np.asarray(hemisphere, float))
-        rays = np.column_stack([m, z * np.ones(len(m))])
-        rays[rho2 > 1.0 + 1e-12] = np.nan
+        coeffs = self._radial_coeffs()
+        if coeffs is None:
+            rho2 = (m**2).sum(1)
+            with np.errstate(invalid="ignore"):
+                z = np.sqrt(1.0 - rho2) * np.sign(np.asarray(hemisphere, float))
+            rays = np.column_stack([m, z * np.ones(len(m))])
+            rays[rho2 > 1.0 + 1e-12] = np.nan
+            return rays
+        r = np.hypot(m[:, 0], m[:, 1])
+        a_max = self.max_alpha_rad()
+        g_max = float(radial_g(np.array([a_max]), coeffs)[0])
+        lo = np.zeros_like(r)
+        hi = np.full_like(r, a_max)
+        alpha = np.clip(r, 0.0, a_max)
+        for _ in range(60):  # safeguarded Newton on g(alpha) = r
+            g, dg, _ = radial_g(alpha, coeffs, derivative=True)
+            f = g - r
+            lo = np.where(f < 0, alpha, lo)
+            hi = np.where(f > 0, alpha, hi)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                step = alpha - f / dg
+            bisect = ~np.isfinite(step) | (step < lo) | (step > hi)
+            done = np.abs(f) < 1e-15
+            alpha = np.where(done, alpha, np.where(bisect, 0.5 * (lo + hi), step))
+            if np.all(~np.isfinite(f) | (np.abs(f) < 1e-15)):
+                break
+        with np.errstate(invalid="ignore", divide="ignore"):
+            direction = np.where(r[:, None] > 0, m / r[:, None], 0.0)
+        rays = np.column_stack([np.sin(alpha)[:, None] * direction, np.cos(alpha)])
+        rays[~(r <= g_max * (1 + 1e-12))] = np.nan
         return rays
 
     def to_dict(self) -> dict:
@@ -342,7 +545,11 @@ class SphereCamera:
             "xp_px": self.xp,
             "yp_px": self.yp,
             "c_px": self.c,
+            "mapping": self.mapping,
         }
+        if self.radial is not None:
+            d["radial"] = dict(self.radial)
+            d["radial_alpha0_rad"] = ALPHA0_RAD
         if self.brown:
             d["brown"] = dict(self.brown)
             d["brown_scale_px"] = self.brown_scale_px

@@ -12,18 +12,30 @@ import sys
 import time
 from pathlib import Path
 
-from .camera import Model, parse_brown_terms
+from .camera import DEFAULT_MODEL, Model, parse_brown_terms
 from .dataset import DatasetError
 from .graph import Loss
 from .optimize import OptimizerKind, stderr_progress
 
 
 def _add_calibration_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--model", choices=[m.value for m in Model], default=Model.SPHERE.value)
+    p.add_argument(
+        "--model",
+        choices=[m.value for m in Model],
+        default=DEFAULT_MODEL.value,
+        help=f"camera model (default {DEFAULT_MODEL.value}; the paper's method is sphere+knn)",
+    )
     p.add_argument(
         "--ap",
-        default="k1,k2,k3,p1,p2",
-        help="Brown additional parameters for --model brown, e.g. k1,k2,p1,p2 or all",
+        default=None,
+        help="Brown additional parameters, e.g. k1,k2,p1,p2 or all; default: k1,k2,k3,p1,p2 "
+        "for brown, p1,p2,a1,a2 (decentering, affinity) for radial",
+    )
+    p.add_argument(
+        "--radial-terms",
+        type=int,
+        default=4,
+        help="coefficients g3, g5, ... of the radial mapping (radial models, 0-6)",
     )
     p.add_argument("--optimizer", choices=[o.value for o in OptimizerKind], default="lm")
     p.add_argument("--loss", choices=[x.value for x in Loss], default="huber")
@@ -44,7 +56,8 @@ def _options_from_args(args):
 
     return CalibrationOptions(
         model=Model(args.model),
-        brown_terms=parse_brown_terms(args.ap),
+        brown_terms=None if args.ap is None else parse_brown_terms(args.ap),
+        radial_terms=args.radial_terms,
         optimizer=OptimizerKind(args.optimizer),
         loss=Loss(args.loss),
         loss_threshold=args.loss_threshold,
@@ -121,47 +134,63 @@ def cmd_evaluate(args) -> int:
 
 
 def cmd_demo(args) -> int:
+    import numpy as np
+
     from .calibrate import CalibrationOptions, calibrate
     from .dataset import parse_dataset
     from .evaluate import evaluate_calibration
-    from .simulate import SimulationOptions, simulate_room, write_simulation
+    from .simulate import gopro_like, simulate_room, write_simulation
+    from .simulate.oracle import oracle_calibration
 
     out = Path(args.output)
     say = None if args.quiet else stderr_progress
+    sim_options = gopro_like(
+        lens=args.lens,
+        fov_deg=args.fov_deg,
+        fill="circle" if args.fov_deg >= 180 else "diagonal",
+        lens_options=gopro_like().lens_options if args.lens == "kannala-brandt" else {},
+        noise_px=args.noise_px,
+        n_images=args.images,
+        seed=args.seed,
+    )
     print(
-        f"simulating a room: {args.lens} lens, {args.fov_deg:.0f} deg field of view, "
-        f"noise {args.noise_px} px, seed {args.seed}"
+        f"simulating the paper's room: {args.lens} lens, {args.fov_deg:.0f} deg field of view, "
+        f"decentering, {sim_options.pupil_shift_m * 1e3:.0f} mm pupil shift, "
+        f"{sim_options.error_field_px:.0f} px smooth error field, noise {args.noise_px} px, "
+        f"{args.images} images, seed {args.seed}"
     )
-    sim = simulate_room(
-        SimulationOptions(
-            lens=args.lens,
-            fov_deg=args.fov_deg,
-            noise_px=args.noise_px,
-            seed=args.seed,
-            n_images=args.images,
-        )
-    )
+    sim = simulate_room(sim_options)
     paths = write_simulation(sim, out)
     dataset = parse_dataset(sim.dataset, str(paths["dataset"]))
     calib = calibrate(dataset, CalibrationOptions(model=Model(args.model), seed=args.seed), say)
     calib.save(out / "calibration.json")
-    truth_cam = sim.truth["lens"]
     ids = [t["id"] for t in sim.checkpoints["targets"]]
-    xyz = [t["xyz"] for t in sim.checkpoints["targets"]]
-    import numpy as np
-
-    rep = evaluate_calibration(calib, ids, np.array(xyz))
+    xyz = np.array([t["xyz"] for t in sim.checkpoints["targets"]], float)
+    rep = evaluate_calibration(calib, ids, xyz)
     print(f"\nwrote {out / 'calibration.json'} (dataset, check points and truth beside it)\n")
-    print(f"{'':24}{'estimated':>12}{'truth':>12}")
-    for name, key in (("xp (px)", "cx"), ("yp (px)", "cy"), ("c (px)", "f")):
-        est = {"cx": calib.camera.xp, "cy": calib.camera.yp, "f": calib.camera.c}[key]
-        tv = truth_cam.get(key, float("nan")) if isinstance(truth_cam, dict) else float("nan")
-        print(f"  {name:<22}{est:>12.3f}{tv:>12.3f}")
-    print(
-        "\n  check points: RMSE X/Y/Z (mm) "
-        + " / ".join(f"{v * 1e3:.2f}" for v in rep.rmse_xyz)
-        + f", 3D {rep.rmse_3d * 1e3:.2f} ({len(rep.ids)} points)"
-    )
+    lens = sim.lens
+    print(f"  {'':22}{'estimated':>12}{'truth':>12}")
+    for name, est, true in (
+        ("xp (px)", calib.camera.xp, lens.cx),
+        ("yp (px)", calib.camera.yp, lens.cy),
+        ("c (px)", calib.camera.c, lens.f),
+    ):
+        print(f"  {name:<22}{est:>12.3f}{true:>12.3f}")
+    rows = [(f"{args.model} (estimated lens)", calib.statistics["rms_px"], rep)]
+    if not args.no_oracle:
+        if say:
+            say("oracle: the same data with the true lens held fixed")
+        oracle = oracle_calibration(sim, args.seed)
+        rows.append(("oracle (true lens)", oracle.statistics["rms_px"],
+                     evaluate_calibration(oracle, ids, xyz)))
+    print(f"\n  check points ({len(rep.ids)}), RMSE after a 7-parameter similarity:")
+    print(f"  {'':30}{'RMS px':>8}{'X mm':>8}{'Y mm':>8}{'Z mm':>8}{'3D mm':>8}")
+    for label, rms, r in rows:
+        x, y, z = (v * 1e3 for v in r.rmse_xyz)
+        print(f"  {label:<30}{rms:>8.3f}{x:>8.3f}{y:>8.3f}{z:>8.3f}{r.rmse_3d * 1e3:>8.3f}")
+    if len(rows) == 2:
+        print(f"  3D RMSE / oracle: {rep.rmse_3d / rows[1][2].rmse_3d:.2f}")
+    print()
     _print_statistics(calib.statistics)
     return 0 if calib.statistics["converged"] else 1
 
@@ -176,11 +205,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("demo", help="simulate a room and calibrate it, printing a result table")
     p.add_argument("-o", "--output", default="gtsam_sphere_demo")
-    p.add_argument("--lens", default="sphere")
+    p.add_argument("--lens", default="kannala-brandt", help="simulated lens family")
     p.add_argument("--fov-deg", type=float, default=200.0)
     p.add_argument("--noise-px", type=float, default=0.3)
     p.add_argument("--images", type=int, default=52)
-    p.add_argument("--model", choices=[m.value for m in Model], default=Model.SPHERE.value)
+    p.add_argument("--model", choices=[m.value for m in Model], default=DEFAULT_MODEL.value)
+    p.add_argument("--no-oracle", action="store_true", help="skip the true-lens adjustment")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_demo)
@@ -212,12 +242,52 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Entry point of the ``gtsam-sphere`` console script."""
+    """Entry point of the ``gtsam-sphere`` console script.
+
+    Parameters
+    ----------
+    argv : list of str, optional
+        Arguments without the program name; default ``sys.argv[1:]``.
+
+    Returns
+    -------
+    int
+        0 success, 1 result not to be trusted, 2 bad input (one ``error: ...``
+        line on standard error, no output file written), 130 interrupted.
+    """
     args = build_parser().parse_args(argv)
+
+    def fail(exc: BaseException) -> int:
+        message = " ".join(str(exc).split()) or type(exc).__name__
+        print(f"error: {message}", file=sys.stderr)
+        return 2
+
     try:
         return int(args.func(args) or 0)
-    except DatasetError as exc:
-        print(f"error: {exc}", file=sys.stderr)
+    except DatasetError as exc:  # bad input file, degenerate geometry (diagnose)
+        return fail(exc)
+    except ValueError as exc:
+        # A ValueError from a `raise` statement in gtsam_sphere's own code states what is
+        # wrong with the input (no image could be initialised, an incomplete datum, fewer
+        # than 3 check points, NaN refused in an output file). One raised inside numpy,
+        # GTSAM or another library (or by a C function such as np.array or float called
+        # from our code) means a check is missing: keep its traceback.
+        import dis
+
+        tb = exc.__traceback__
+        while tb is not None and tb.tb_next is not None:
+            tb = tb.tb_next
+        if tb is None:
+            raise
+        code = tb.tb_frame.f_code
+        package = Path(__file__).resolve().parent
+        ours = package in Path(code.co_filename).resolve().parents
+        if not ours or dis.opname[code.co_code[tb.tb_lasti]] != "RAISE_VARARGS":
+            raise
+        return fail(exc)
+    except OSError as exc:  # the output cannot be written (directory, permissions, disc full)
+        filename = f"{exc.filename}: " if exc.filename else ""
+        print(f"error: {filename}{exc.strerror or exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("interrupted: no output file was written or changed", file=sys.stderr)

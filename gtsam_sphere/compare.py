@@ -24,6 +24,8 @@ PAPER_ROWS: tuple[tuple[str, Model, tuple[str, ...]], ...] = (
     ("+K1-K3,P1,P2,A1,A2", Model.BROWN, ("k1", "k2", "k3", "p1", "p2", "a1", "a2")),
     ("kNN (paper)", Model.SPHERE_KNN, ()),
     ("Brown K1-K3,P1,P2 + kNN", Model.BROWN_KNN, ("k1", "k2", "k3", "p1", "p2")),
+    ("radial g3-g9,P1,P2,A1,A2", Model.RADIAL, ("p1", "p2", "a1", "a2")),
+    ("radial + kNN (default)", Model.RADIAL_KNN, ("p1", "p2", "a1", "a2")),
 )
 
 

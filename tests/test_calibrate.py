@@ -36,7 +36,7 @@ def _run(fov_deg, blunder_rate=0.0, sigma_mode="weighted", oracle=False, optimiz
     sim = _sim(fov_deg, blunder_rate, sigma_mode)
     lens = sim.truth["lens"]
     fixed = (lens["cx"], lens["cy"], lens["f"]) if oracle else None
-    options = CalibrationOptions(fixed_intrinsics=fixed, optimizer=optimizer)
+    options = CalibrationOptions(model="sphere", fixed_intrinsics=fixed, optimizer=optimizer)
     calib = calibrate(parse_dataset(sim.dataset), options)
     ids, xyz = checkpoints_of(sim)
     return sim, calib, evaluate_calibration(calib, ids, xyz)
@@ -81,7 +81,7 @@ def test_huber_resists_five_percent_blunders():
 def test_l2_is_hurt_by_blunders_more_than_huber():
     sim = _sim(200.0, 0.05)
     ids, xyz = checkpoints_of(sim)
-    l2 = calibrate(parse_dataset(sim.dataset), CalibrationOptions(loss="l2", covariance=False))
+    l2 = calibrate(parse_dataset(sim.dataset), CalibrationOptions(model="sphere", loss="l2", covariance=False))
     _, _, huber = _run(200.0, blunder_rate=0.05)
     assert evaluate_calibration(l2, ids, xyz).rmse_3d > 2 * huber.rmse_3d
 

@@ -33,7 +33,9 @@ def small_room(tmp_path_factory):
 def test_calibrate_evaluate_and_reload(small_room, tmp_path, capsys):
     sim, paths = small_room
     calib_path = tmp_path / "calib.json"
-    rc = main(["calibrate", str(paths["dataset"]), "-o", str(calib_path), "--quiet"])
+    rc = main(
+        ["calibrate", str(paths["dataset"]), "-o", str(calib_path), "--model", "sphere", "--quiet"]
+    )
     assert rc == 0
     doc = json.loads(calib_path.read_text())
     assert doc["format"] == "gtsam-sphere/calibration@1"
@@ -62,6 +64,37 @@ def test_calibrate_evaluate_and_reload(small_room, tmp_path, capsys):
     rc = main(["evaluate", str(calib_path), str(paths["checkpoints"])])
     assert rc == 0
     assert "RMSE X / Y / Z (mm)" in capsys.readouterr().out
+
+
+def test_default_model_unprojects_past_90_degrees_without_a_hemisphere(tmp_path):
+    """The default (radial + kNN) on a 200 deg fisheye: unproject(uv) alone finds every ray."""
+    from gtsam_sphere.simulate import gopro_like
+
+    sim = simulate_room(
+        gopro_like(
+            fov_deg=200.0, fill="circle", n_images=16, n_targets=150, n_checkpoints=60, seed=5
+        )
+    )
+    paths = write_simulation(sim, tmp_path / "sim")
+    out = tmp_path / "c.json"
+    assert main(["calibrate", str(paths["dataset"]), "-o", str(out), "--quiet"]) == 0
+    calib = load_calibration(out)
+    assert calib.model == "radial+knn" and calib.camera.mapping == "radial"
+    obs = calib.extra["observations"]
+    uv = np.asarray(obs["uv_px"], float)
+    index = {t: k for k, t in enumerate(calib.target_ids)}
+    xyz = calib.target_xyz[[index[t] for t in obs["target"]]]
+    img = [calib.image_ids.index(i) for i in obs["image"]]
+    pc = np.einsum("nij,nj->ni", calib.cam_from_world_R[img], xyz) + calib.cam_from_world_t[img]
+    assert np.max(obs["incidence_deg"]) > 95.0
+    rays = calib.camera.unproject(uv)
+    assert np.isfinite(rays).all()
+    cosang = np.sum(rays * pc / np.linalg.norm(pc, axis=1)[:, None], axis=1)
+    angle_px = np.arccos(np.clip(cosang, -1, 1)) * calib.camera.c  # ~ px for an equidistant lens
+    back = np.asarray(obs["incidence_deg"]) > 90
+    assert back.sum() > 20
+    # 2 mm pupil shift and 2 px error field included: rays within a few noise sigmas
+    assert np.median(angle_px) < 0.5 and np.percentile(angle_px[back], 95) < 2.0
 
 
 def test_bad_dataset_exits_2_with_message(tmp_path, capsys):

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from gtsam.utils.numerical_derivative import numericalDerivative11
 
-from gtsam_sphere.camera import BROWN_TERMS
+from gtsam_sphere.camera import BROWN_TERMS, RADIAL_TERMS
 from gtsam_sphere.graph import (
     INTRINSICS_KEY,
     Loss,
@@ -16,13 +16,16 @@ from gtsam_sphere.graph import (
 )
 
 
-def _values(rng, direction_cam, brown_names):
+def _values(rng, direction_cam, brown_names, radial_names=None):
     """One pose and one point placed so the point is seen along ``direction_cam``."""
     R = gtsam.Rot3.Rodrigues(*rng.normal(size=3))
     world_from_cam = gtsam.Pose3(R, gtsam.Point3(*rng.normal(size=3)))
     d = np.asarray(direction_cam, float)
     point_world = world_from_cam.transformFrom(2.5 * d / np.linalg.norm(d))
-    theta = np.concatenate([[640.2, 401.7, 350.0], 0.02 * rng.normal(size=len(brown_names))])
+    radial = [] if radial_names is None else [-0.05, 0.01, -0.002, 0.001][: len(radial_names)]
+    theta = np.concatenate(
+        [[640.2, 401.7, 350.0], radial, 0.02 * rng.normal(size=len(brown_names))]
+    )
     values = gtsam.Values()
     values.insert(pose_key(0), world_from_cam)
     values.insert(point_key(0), point_world)
@@ -39,16 +42,35 @@ DIRECTIONS = {
 }
 
 
+MODELS = {
+    "sphere": ((), None),
+    "brown-all": (BROWN_TERMS, None),
+    "equidistant": ((), ()),
+    "radial4": ((), RADIAL_TERMS[:4]),
+    "radial4+p1p2a1a2": (("p1", "p2", "a1", "a2"), RADIAL_TERMS[:4]),
+}
+
+
 @pytest.mark.parametrize("name", list(DIRECTIONS))
-@pytest.mark.parametrize("brown_names", [(), BROWN_TERMS], ids=["sphere", "brown-all"])
+@pytest.mark.parametrize("model", list(MODELS))
 @pytest.mark.parametrize("loss", [Loss.L2, Loss.HUBER])
-def test_block_jacobians_match_numerical(name, brown_names, loss):
+def test_block_jacobians_match_numerical(name, model, loss):
+    brown_names, radial_names = MODELS[model]
     rng = np.random.default_rng(1)
-    values = _values(rng, DIRECTIONS[name], brown_names)
+    values = _values(rng, DIRECTIONS[name], brown_names, radial_names)
     uv = np.array([[640.0 + 3.0, 401.0 - 2.0]])  # residual big enough to be in Huber's tail
     noise = NoiseOptions(sigma_px=0.5, loss=loss, loss_threshold=1.0)
     block = ObservationBlock(
-        [pose_key(0)], [point_key(0)], [0], [0], np.zeros((1, 3)), uv, brown_names, 500.0, noise
+        [pose_key(0)],
+        [point_key(0)],
+        [0],
+        [0],
+        np.zeros((1, 3)),
+        uv,
+        brown_names,
+        500.0,
+        noise,
+        radial_names,
     )
     H = [None] * 3
     block.evaluate(None, values, H)
