@@ -7,7 +7,9 @@ target coordinates; targets are free variables with weighted priors.
 Rows:
 
 - ``ours ppf=G``: :meth:`BundleProblem.build` with ``points_per_factor=G``
-  (vectorised ``gtsam.CustomFactor`` blocks, Huber per observation);
+  (tiles of at most ``G`` targets by ``graph.IMAGES_PER_FACTOR`` images, each a
+  ``gtsam.CustomFactor``, all evaluated in one numpy pass per ``Values``, Huber
+  per observation);
 - ``one CustomFactor per observation``: the same spherical residual, one
   single-observation :class:`ObservationBlock` per observation (the naive cost);
 - ``built-in``: ``gtsam.GeneralSFMFactor2Cal3Fisheye`` per observation with
@@ -17,11 +19,24 @@ Every graph also holds the same ``PriorFactorPoint3`` per target. Timings are
 medians over repeats (after one warm-up) of ``graph.linearize(values)``, one
 ``LevenbergMarquardtOptimizer.iterate()`` from a slightly perturbed start and
 ``lin.eliminateMultifrontal(ordering)`` (targets, then poses, then intrinsics).
+Successive linearisations alternate between two ``Values`` (the true state and
+the perturbed start), as in an optimisation: ours keeps the evaluation of the
+last ``Values`` and would otherwise answer a repeat from it. Each timing is
+taken as wall clock and as this process's CPU time (less sensitive to other
+processes on a shared machine).
+
+``--breakdown`` adds, for ``points_per_factor`` = the :class:`BundleProblem`
+default: where one linearisation and one cost evaluation spend their CPU time
+(the one vectorised evaluation, the per-block checks that the stored
+evaluation is the one for the ``Values`` at hand, the per-block copies into
+GTSAM, GTSAM's own work), and the binding floor: the same factors with
+callbacks that only hand over precomputed arrays.
 
 Usage::
 
     python benchmarks/bench_linearize.py            # 7 repeats (about a minute)
     python benchmarks/bench_linearize.py --quick    # 3 repeats
+    python benchmarks/bench_linearize.py --breakdown
 """
 
 from __future__ import annotations
@@ -38,6 +53,7 @@ import time
 import gtsam
 import numpy as np
 
+from gtsam_sphere import graph as graph_module
 from gtsam_sphere.calibrate import initial_principal_distance, initial_values
 from gtsam_sphere.dataset import parse_dataset
 from gtsam_sphere.graph import (
@@ -52,7 +68,7 @@ from gtsam_sphere.optimize import make_ordering
 from gtsam_sphere.simulate import gopro_like, simulate_room
 
 CALIB_KEY = gtsam.symbol("K", 0)  # Cal3Fisheye of the built-in graph
-POINTS_PER_FACTOR = (1, 2, 4, 8, 16)
+POINTS_PER_FACTOR = (1, 4, 8, 16)
 HUBER_K = 2.45
 
 
@@ -64,26 +80,24 @@ def version(package: str) -> str:
         return "?"
 
 
-def lm_iteration(graph, values, ordering) -> tuple[float, int]:
-    """Seconds of one LM ``iterate()`` (optimizer built outside the timer) and the
-    number of trial steps it took, read from lambda."""
+def lm_iteration(graph, values, ordering) -> tuple[float, float, int]:
+    """Wall and CPU seconds of one LM ``iterate()`` (optimizer built outside the timer)
+    and the number of trial steps it took, read from lambda."""
     params = gtsam.LevenbergMarquardtParams()
     params.setOrdering(ordering)
     opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
-    t0 = time.perf_counter()
-    opt.iterate()
-    dt = time.perf_counter() - t0
+    wall, cpu = timed(opt.iterate)
     # fixed lambda factor: each rejected trial multiplies lambda by the factor,
     # the accepted one divides it
     ratio = opt.lambda_() / params.getlambdaInitial()
-    return dt, round(math.log(ratio) / math.log(params.getlambdaFactor())) + 2
+    return wall, cpu, round(math.log(ratio) / math.log(params.getlambdaFactor())) + 2
 
 
-def timed(fn) -> float:
-    """Seconds of one call of ``fn()``."""
-    t0 = time.perf_counter()
+def timed(fn) -> tuple[float, float]:
+    """Wall-clock and CPU seconds of one call of ``fn()``."""
+    w0, c0 = time.perf_counter(), time.process_time()
     fn()
-    return time.perf_counter() - t0
+    return time.perf_counter() - w0, time.process_time() - c0
 
 
 def simulate(targets_per_image: int, seed: int):
@@ -136,6 +150,106 @@ def copy_with(values: gtsam.Values, source: gtsam.Values, keys_pose, keys_point)
     return out
 
 
+def breakdown(problem: BundleProblem, values: gtsam.Values, other: gtsam.Values, repeats: int):
+    """Print where one linearisation and one cost evaluation of ``problem`` spend CPU time,
+    and the binding floor (the same factors handing over precomputed arrays)."""
+    problem.build()
+    blocks = problem.blocks
+    views = [v for b in blocks for v in b._shared.views[b._index]]
+    shared = graph_module._SharedEvaluation
+    spent: dict[str, float] = {}
+
+    def timing(cls, name):
+        original = getattr(cls, name)
+
+        def wrapper(*args, **kwargs):
+            c0 = time.process_time()
+            try:
+                return original(*args, **kwargs)
+            finally:
+                spent[name] = spent.get(name, 0.0) + time.process_time() - c0
+
+        setattr(cls, name, wrapper)
+        return original
+
+    originals = [
+        (cls, name, timing(cls, name))
+        for cls, name in ((shared, "_compute"), (shared, "ready"), (ObservationBlock, "evaluate"))
+    ]
+    timed_graph = gtsam.NonlinearFactorGraph()
+    for b in blocks:
+        timed_graph.add(b.factor())  # the factors hold the (wrapped) bound method
+    parts: dict[str, list[dict[str, float]]] = {"linearize": [], "error": []}
+    for r in range(2 * repeats + 1):
+        for label, call in (("linearize", timed_graph.linearize), ("error", timed_graph.error)):
+            spent.clear()
+            at = values if (r + (label == "error")) % 2 else other  # never the last Values
+            _, total = timed(lambda call=call, at=at: call(at))
+            if r:
+                parts[label].append(dict(spent, total=total))
+    for cls, name, original in originals:
+        setattr(cls, name, original)
+
+    print(
+        f"\nbreakdown, points_per_factor={problem.points_per_factor}, images per factor "
+        f"{graph_module.IMAGES_PER_FACTOR}: {len(blocks)} blocks, "
+        f"{sum(len(b.keys) for b in blocks)} Jacobian blocks, "
+        f"{(sum(v.size for v in views) + 2 * len(problem.uv_px)) / 1e6:.2f} M numbers "
+        "(A and b); median process CPU ms"
+    )
+    for label, rows in parts.items():
+        m = {
+            k: 1e3 * statistics.median([row.get(k, 0.0) for row in rows])
+            for k in ("total", "evaluate", "ready", "_compute")
+        }
+        print(
+            f"  {label:9s} {m['total']:6.2f} = evaluation of all observations "
+            f"{m['_compute']:5.2f} + per-block checks {m['ready'] - m['_compute']:5.2f} "
+            f"+ per-block copies and returns {m['evaluate'] - m['ready']:5.2f} "
+            f"+ GTSAM (C++) {m['total'] - m['evaluate']:5.2f}"
+        )
+
+    # binding floor: the same keys and shapes, callbacks that only hand over arrays
+    floors = {
+        "H[q] = array": gtsam.NonlinearFactorGraph(),
+        "one copy": gtsam.NonlinearFactorGraph(),
+    }
+    for b in blocks:
+        H = [None] * len(b.keys)
+        e = b.evaluate(None, values, H)
+        native = gtsam.JacobianVector(H)
+
+        def per_key(this, v, out, H=H, e=e):
+            if out is not None:
+                for q, block in enumerate(H):
+                    out[q] = block
+            return e
+
+        def one_copy(this, v, out, native=native, e=e):
+            if out is not None:
+                out[:] = native
+            return e
+
+        noise = gtsam.noiseModel.Unit.Create(2 * b.n)
+        floors["H[q] = array"].add(gtsam.CustomFactor(noise, b.keys, per_key))
+        floors["one copy"].add(gtsam.CustomFactor(noise, b.keys, one_copy))
+    copies = [timed(lambda: gtsam.Values(values))[1] for _ in range(20 * repeats + 1)][1:]
+    print(
+        f"  a copy of the Values ({values.size()} variables): "
+        f"{1e6 * statistics.median(copies):.0f} us. Inside GTSAM's optimizers (iterate() "
+        "linearises and evaluates Values that Python does not hold) the binding hands each "
+        f"callback such a copy: about {1e3 * len(blocks) * statistics.median(copies):.1f} ms "
+        "per pass over these blocks, not in the linearize column above"
+    )
+    for label, g in floors.items():
+        lin = [timed(lambda g=g: g.linearize(values))[1] for _ in range(2 * repeats + 1)][1:]
+        err = [timed(lambda g=g: g.error(values))[1] for _ in range(2 * repeats + 1)][1:]
+        print(
+            f"  floor ({label}): linearize {1e3 * statistics.median(lin):6.2f}, "
+            f"error {1e3 * statistics.median(err):6.2f}"
+        )
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="3 repeats instead of 7")
@@ -147,6 +261,11 @@ def main(argv: list[str] | None = None) -> int:
         help="simulator's preferred_targets_per_image (55 gives ~5,850 observations)",
     )
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--breakdown",
+        action="store_true",
+        help="also where our linearisation spends its time, and the binding floor",
+    )
     args = parser.parse_args(argv)
     repeats = args.repeats or (3 if args.quick else 7)
     t_start = time.perf_counter()
@@ -254,7 +373,7 @@ def main(argv: list[str] | None = None) -> int:
 
     # -- timing: round-robin over the designs, so load changes hit all of them alike --
     samples: dict[str, dict[str, list[float]]] = {
-        name: {"lin": [], "elim": [], "lm": []} for name, *_ in designs
+        name: {k: [] for k in ("lin", "lin_cpu", "elim", "lm", "lm_cpu")} for name, *_ in designs
     }
     tries: dict[str, int] = {}
     linear = {name: g.linearize(vals) for name, g, vals, _ in designs}
@@ -264,40 +383,50 @@ def main(argv: list[str] | None = None) -> int:
     }
     for r in range(repeats + 1):  # r == 0 is the warm-up pass
         for name, g, vals, order in designs:
-            lin_s = timed(lambda g=g, vals=vals: g.linearize(vals))
-            elim_s = timed(lambda lin=linear[name], o=order: lin.eliminateMultifrontal(o))
-            lm_s, tries[name] = lm_iteration(g, lm_starts[name], order)
+            at = vals if r % 2 else lm_starts[name]  # a new Values at every linearisation
+            lin_s = timed(lambda g=g, at=at: g.linearize(at))
+            elim_s, _ = timed(lambda lin=linear[name], o=order: lin.eliminateMultifrontal(o))
+            *lm_s, tries[name] = lm_iteration(g, lm_starts[name], order)
             if r:
-                for key, sec in (("lin", lin_s), ("elim", elim_s), ("lm", lm_s)):
-                    samples[name][key].append(sec)
+                row = samples[name]
+                for key, sec in zip(
+                    ("lin", "lin_cpu", "elim", "lm", "lm_cpu"), (*lin_s, elim_s, *lm_s)
+                ):
+                    row[key].append(sec)
         print(f"  pass {r}/{repeats} done", file=sys.stderr, flush=True)
 
-    rows = []
-    for name, g, _, _ in designs:
-        med = {k: 1e3 * statistics.median(v) for k, v in samples[name].items()}
-        rows.append((name, g.size(), med["lin"], med["lm"], tries[name], med["elim"]))
-
-    ref = next(r for r in rows if r[0] == "built-in + Huber")
+    med = {
+        name: {k: 1e3 * statistics.median(v) for k, v in samples[name].items()} for name in samples
+    }
+    ref = med["built-in + Huber"]
     header = (
-        f"{'design':34s} {'factors':>7s} {'linearize ms':>12s} {'ratio':>6s} "
-        f"{'LM iteration ms':>15s} {'ratio':>6s} {'LM tries':>8s} {'eliminate ms':>12s}"
+        f"{'design':34s} {'factors':>7s} {'linearize ms':>12s} {'ratio':>6s} {'cpu':>5s} "
+        f"{'LM iteration ms':>15s} {'ratio':>6s} {'cpu':>5s} {'LM tries':>8s} "
+        f"{'eliminate ms':>12s}"
     )
     print(header)
     print("-" * len(header))
-    for name, n_factors, lin_ms, lm_ms, tries, elim_ms in rows:
+    for name, g, _, _ in designs:
+        m = med[name]
         print(
-            f"{name:34s} {n_factors:7d} {lin_ms:12.1f} {lin_ms / ref[2]:6.2f} "
-            f"{lm_ms:15.1f} {lm_ms / ref[3]:6.2f} {tries:8d} {elim_ms:12.1f}"
+            f"{name:34s} {g.size():7d} {m['lin']:12.1f} {m['lin'] / ref['lin']:6.2f} "
+            f"{m['lin_cpu'] / ref['lin_cpu']:5.2f} {m['lm']:15.1f} {m['lm'] / ref['lm']:6.2f} "
+            f"{m['lm_cpu'] / ref['lm_cpu']:5.2f} {tries[name]:8d} {m['elim']:12.1f}"
         )
     print(
-        "\nratios are to 'built-in + Huber' (like-for-like robust weighting). 'factors' "
-        f"includes {len(priors)} PriorFactorPoint3 (one per target) in every graph.\n"
+        "\nratios are to 'built-in + Huber' (like-for-like robust weighting): 'ratio' of "
+        "wall-clock medians, 'cpu' of process CPU-time medians. 'factors' includes "
+        f"{len(priors)} PriorFactorPoint3 (one per target) in every graph.\n"
+        "linearize = graph.linearize(values), alternating between two Values.\n"
         "LM iteration = one LevenbergMarquardtOptimizer.iterate() from the same perturbed "
         "start (2 mrad, 5 mm): one linearisation, the damped elimination and one cost "
         "evaluation per trial step ('LM tries', read from lambda).\n"
         "eliminate = lin.eliminateMultifrontal(ordering), targets then poses then intrinsics. "
-        "Times are wall clock: a loaded machine (see load average) inflates them all."
+        "Times are wall clock unless 'cpu': a loaded machine (see load average) inflates "
+        "them all."
     )
+    if args.breakdown:
+        breakdown(problem_with(BundleProblem.points_per_factor), values, start, repeats)
     print(
         f"total benchmark time {time.perf_counter() - t_start:.1f} s; "
         f"load average now {os.getloadavg()[0]:.2f}"

@@ -78,9 +78,23 @@ class Calibration:
 
 
 def camera_from_dict(cam: dict, source: str = "<calibration>") -> SphereCamera:
-    """Build the camera model from a ``calibration@1`` ``camera`` object."""
+    """Build the camera model from a ``calibration@1`` ``camera`` object.
+
+    Raises
+    ------
+    DatasetError
+        Naming ``source`` and the entry when the object is incomplete or malformed.
+    """
     from .correct import correction_from_dict
 
+    if not isinstance(cam, dict):
+        raise DatasetError(f"{source}: 'camera' must be an object, got {type(cam).__name__}")
+    mapping = cam.get("mapping", "sphere")
+    if mapping not in ("sphere", "radial"):
+        raise DatasetError(f"{source}: unknown camera mapping {mapping!r}")
+    for key in ("brown", "radial"):
+        if key in cam and not isinstance(cam[key], dict):
+            raise DatasetError(f"{source}: camera.{key} must be an object of named terms")
     try:
         camera = SphereCamera(
             width=int(cam["width"]),
@@ -91,47 +105,93 @@ def camera_from_dict(cam: dict, source: str = "<calibration>") -> SphereCamera:
             brown={k: float(v) for k, v in cam.get("brown", {}).items()},
             brown_scale_px=float(cam.get("brown_scale_px", 0.0)),
             radial=None
-            if cam.get("mapping", "sphere") == "sphere"
+            if mapping == "sphere"
             else {k: float(v) for k, v in cam.get("radial", {}).items()},
         )
-    except (KeyError, TypeError, ValueError) as exc:
-        raise DatasetError(f"{source}: camera entry is incomplete or malformed ({exc})") from None
-    if cam.get("mapping", "sphere") not in ("sphere", "radial"):
-        raise DatasetError(f"{source}: unknown camera mapping {cam.get('mapping')!r}")
+    except KeyError as exc:
+        raise DatasetError(f"{source}: camera entry misses {exc}") from None
+    except (TypeError, ValueError, OverflowError) as exc:
+        raise DatasetError(f"{source}: camera entry is malformed ({exc})") from None
     if "correction" in cam:
-        camera.correction = correction_from_dict(cam["correction"])
+        try:
+            camera.correction = correction_from_dict(cam["correction"])
+        except KeyError as exc:
+            raise DatasetError(f"{source}: camera.correction misses {exc}") from None
+        except (TypeError, ValueError, AttributeError) as exc:
+            raise DatasetError(f"{source}: camera.correction is malformed ({exc})") from None
     return camera
+
+
+def _entries(doc: dict, key: str, source: str) -> list:
+    items = doc.get(key, [])
+    if not isinstance(items, list):
+        raise DatasetError(f"{source}: '{key}' must be a list, got {type(items).__name__}")
+    for k, item in enumerate(items):
+        if not isinstance(item, dict) or "id" not in item:
+            raise DatasetError(f"{source}: {key}[{k}] must be an object with an 'id'")
+    return items
+
+
+def _finite_array(value, shape: tuple, what: str, source: str) -> np.ndarray:
+    try:
+        arr = np.asarray(value, dtype=float)
+    except (TypeError, ValueError, OverflowError):
+        raise DatasetError(f"{source}: {what} must be numbers of shape {shape}") from None
+    if arr.shape != shape:
+        raise DatasetError(f"{source}: {what} must have shape {shape}, got {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise DatasetError(f"{source}: {what} holds NaN or inf")
+    return arr
 
 
 def load_calibration(path: str | os.PathLike) -> Calibration:
     """Read a ``gtsam-sphere/calibration@1`` file.
+
+    Parameters
+    ----------
+    path : str or PathLike
 
     Returns
     -------
     Calibration
         ``.camera.project`` / ``.camera.unproject`` reproduce the model that
         was estimated, learned correction included.
+
+    Raises
+    ------
+    DatasetError
+        Naming the file and the entry for a missing, malformed or non-finite item.
     """
     source = str(path)
     doc = read_json(path)
     _check_format(doc, CALIBRATION_FORMAT, source)
     camera = camera_from_dict(doc.get("camera", {}), source)
-    images = doc.get("images", [])
-    targets = doc.get("targets", [])
+    images = _entries(doc, "images", source)
+    targets = _entries(doc, "targets", source)
+    R, t = [], []
+    for im in images:
+        pose = im.get("cam_from_world")
+        if not isinstance(pose, dict):
+            raise DatasetError(f"{source}: image {im['id']!r} has no cam_from_world {{R, t}}")
+        R.append(_finite_array(pose.get("R"), (3, 3), f"image {im['id']!r} R", source))
+        t.append(_finite_array(pose.get("t"), (3,), f"image {im['id']!r} t", source))
+    xyz = [_finite_array(tg.get("xyz"), (3,), f"target {tg['id']!r} xyz", source) for tg in targets]
+    statistics = doc.get("statistics", {})
+    if not isinstance(statistics, dict):
+        raise DatasetError(f"{source}: 'statistics' must be an object")
+    for key in ("rms_px", "n_observations", "n_rejected"):
+        if key not in statistics:
+            raise DatasetError(f"{source}: statistics misses {key!r} (calibration@1 requires it)")
     known = {"format", "model", "units", "camera", "images", "targets", "statistics"}
     return Calibration(
         model=str(doc.get("model", "sphere")),
         camera=camera,
-        image_ids=[im["id"] for im in images],
-        cam_from_world_R=np.array([im["cam_from_world"]["R"] for im in images], float).reshape(
-            -1, 3, 3
-        ),
-        cam_from_world_t=np.array([im["cam_from_world"]["t"] for im in images], float).reshape(
-            -1, 3
-        ),
-        target_ids=[t["id"] for t in targets],
-        target_xyz=np.array([t["xyz"] for t in targets], float).reshape(-1, 3),
-        statistics=doc.get("statistics", {}),
+        image_ids=[str(im["id"]) for im in images],
+        cam_from_world_R=np.array(R, float).reshape(-1, 3, 3),
+        cam_from_world_t=np.array(t, float).reshape(-1, 3),
+        target_ids=[str(tg["id"]) for tg in targets],
+        target_xyz=np.array(xyz, float).reshape(-1, 3),
+        statistics=statistics,
         units=doc.get("units", "m"),
         extra={k: v for k, v in doc.items() if k not in known},
     )

@@ -229,16 +229,20 @@ def ideal_projection(points_cam: np.ndarray, radial: np.ndarray | None, jacobian
     m : ndarray, shape (N, 2)
         Multiply by ``c`` for pixels.
     """
-    P = points_cam
-    norm = np.linalg.norm(P, axis=1)
+    # the mapping is scale invariant: work on P / max|P_i| so |P|^2 neither overflows
+    # (1e300) nor underflows (1e-200); Jacobians are scaled back at the end
+    big = np.max(np.abs(points_cam), axis=1)
     with np.errstate(invalid="ignore", divide="ignore"):
+        inv = np.where(big > 0, 1.0 / big, np.nan)
+        P = points_cam * inv[:, None]
+        norm = np.linalg.norm(P, axis=1)
         u = P / norm[:, None]
     if radial is None:
         m = u[:, :2]
         if not jacobians:
             return m
         J_p = (np.eye(3)[None, :2, :] - u[:, :2, None] * u[:, None, :]) / norm[:, None, None]
-        return m, J_p, np.zeros((len(P), 2, 0))
+        return m, J_p * inv[:, None, None], np.zeros((len(P), 2, 0))
     rho = np.hypot(P[:, 0], P[:, 1])
     alpha = np.arctan2(rho, P[:, 2])
     sin_a = rho / norm
@@ -267,7 +271,7 @@ def ideal_projection(points_cam: np.ndarray, radial: np.ndarray | None, jacobian
     J_u = (np.eye(3)[None, :2, :] - u[:, :2, None] * u[:, None, :]) / norm[:, None, None]
     J_p = s[:, None, None] * J_u + (u[:, :2] * ds[:, None])[:, :, None] * dalpha[:, None, :]
     J_r = direction[:, :, None] * dg_dc[:, None, :]
-    return m, J_p, J_r
+    return m, J_p * inv[:, None, None], J_r
 
 
 def sphere_residual(
@@ -368,6 +372,18 @@ class SphereCamera:
     radial: dict[str, float] | None = None
 
     def __post_init__(self) -> None:
+        for name in ("width", "height", "c"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value > 0):
+                raise ValueError(f"SphereCamera: {name} must be finite and > 0, got {value!r}")
+        for name in ("xp", "yp", "brown_scale_px"):
+            value = getattr(self, name)
+            if not np.isfinite(value):
+                raise ValueError(f"SphereCamera: {name} must be finite, got {value!r}")
+        for kind, terms in (("brown", self.brown), ("radial", self.radial or {})):
+            bad = {k: v for k, v in terms.items() if not np.isfinite(v)}
+            if bad:
+                raise ValueError(f"SphereCamera: {kind} terms must be finite, got {bad}")
         if self.brown_scale_px <= 0:
             self.brown_scale_px = 0.5 * max(self.width, self.height)
 
@@ -504,16 +520,24 @@ class SphereCamera:
             (the sphere's disc of radius ``c``; beyond ``g(max_alpha)`` for
             the radial mapping).
         """
-        m = self.ideal_from_pixels(uv_px) / self.c
+        with np.errstate(invalid="ignore", over="ignore"):
+            m = self.ideal_from_pixels(uv_px) / self.c
+        bad = ~np.isfinite(m).all(axis=1)
+        m[bad] = np.nan
         coeffs = self._radial_coeffs()
         if coeffs is None:
-            rho2 = (m**2).sum(1)
-            with np.errstate(invalid="ignore"):
-                z = np.sqrt(1.0 - rho2) * np.sign(np.asarray(hemisphere, float))
+            with np.errstate(invalid="ignore", over="ignore"):
+                rho2 = (m**2).sum(1)
+                # the rim (90 deg) rounds to rho2 = 1 + eps: clip inside the tolerance
+                z = np.sqrt(np.clip(1.0 - rho2, 0.0, None)) * np.sign(
+                    np.asarray(hemisphere, float)
+                )
             rays = np.column_stack([m, z * np.ones(len(m))])
-            rays[rho2 > 1.0 + 1e-12] = np.nan
+            with np.errstate(invalid="ignore"):
+                rays[~(rho2 <= 1.0 + 1e-12)] = np.nan
             return rays
-        r = np.hypot(m[:, 0], m[:, 1])
+        with np.errstate(over="ignore"):
+            r = np.hypot(m[:, 0], m[:, 1])
         a_max = self.max_alpha_rad()
         g_max = float(radial_g(np.array([a_max]), coeffs)[0])
         lo = np.zeros_like(r)

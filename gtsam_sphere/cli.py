@@ -111,7 +111,24 @@ def cmd_calibrate(args) -> int:
         f"c {cam.c:.3f} px ({time.perf_counter() - t0:.1f} s)"
     )
     _print_statistics(calib.statistics)
-    return 0 if calib.statistics["converged"] else 1
+    _print_outliers(calib.extra.get("outliers", []))
+    for reason in calib.statistics.get("distrust", []):
+        print(f"warning: do not trust this result: {reason}", file=sys.stderr)
+    return 0 if calib.statistics.get("trusted", calib.statistics["converged"]) else 1
+
+
+def _print_outliers(outliers: list[dict], limit: int = 10) -> None:
+    if not outliers:
+        return
+    print(f"\n  outliers (> 5 sigma): {len(outliers)}, all listed in the file; largest:")
+    for o in outliers[:limit]:
+        cause = o["cause"]
+        if cause == "mislabelled":
+            cause += f" (looks like target {o['matches_target']!r}, {o['distance_px']:.1f} px)"
+        print(
+            f"    image {o['image']!r} target {o['target']!r}: "
+            f"{o['residual_norm_px']:.1f} px, {cause}"
+        )
 
 
 def cmd_evaluate(args) -> int:
@@ -226,7 +243,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("checkpoints")
     p.set_defaults(func=cmd_evaluate)
 
-    from . import compare, detect, report, simulate
+    from . import compare, detect, export, report, simulate, undistort
 
     # subcommands whose module owns its arguments (add_cli_arguments / run_cli)
     for name, module, help_text in (
@@ -234,6 +251,8 @@ def build_parser() -> argparse.ArgumentParser:
         ("report", report, "plots and a page for a calibration"),
         ("simulate", simulate, "simulate the paper's room experiment"),
         ("detect", detect, "detect board corners / markers in images"),
+        ("export", export, "fit OpenCV / Kalibr camera models to a calibration"),
+        ("undistort", undistort, "resample an image to a perspective / panoramic projection"),
     ):
         p = sub.add_parser(name, help=help_text)
         module.add_cli_arguments(p)
@@ -290,7 +309,13 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {filename}{exc.strerror or exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print("interrupted: no output file was written or changed", file=sys.stderr)
+        out = getattr(args, "output", None)
+        where = ""
+        if out is not None and Path(out).is_file():
+            where = f"; the last good result is the previous {out}, unchanged"
+        elif out is not None:
+            where = f"; {out} was not created"
+        print(f"interrupted: no output file was written or changed{where}", file=sys.stderr)
         return 130
 
 

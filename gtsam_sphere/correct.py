@@ -117,6 +117,13 @@ def correction_from_dict(d: dict) -> KNNCorrection:
     return model
 
 
+def _inlier_rms(adj) -> float:
+    """RMS (px) of the residuals within 5 sigma: blunders must not steer the loop."""
+    r = np.linalg.norm(adj.residuals_px, axis=1)
+    keep = r < 5.0 * adj.sigma_px
+    return float(np.sqrt(np.mean(r[keep] ** 2))) if keep.any() else float(np.sqrt(np.mean(r**2)))
+
+
 def grey_box_loop(problem, adj, optimizer, options, say: Callable[[str], None]):
     """Alternate kNN training and adjustment until both are stable.
 
@@ -124,8 +131,9 @@ def grey_box_loop(problem, adj, optimizer, options, say: Callable[[str], None]):
     ``current correction + residual`` (observations down-weighted below 0.5
     are left out of the training set), rewrites the measurements with the
     prediction, rebuilds the graph and adjusts. Stops when the RMS residual
-    and the CV score both change by less than ``knn["tolerance"]`` (relative,
-    default 2%) between rounds, or after ``knn["max_rounds"]`` (default 8).
+    (of the observations within 5 sigma: blunders cannot steer it) and the CV
+    score both change by less than ``knn["tolerance"]`` (relative, default
+    2%) between rounds, or after ``knn["max_rounds"]`` (default 8).
     The round with the lowest RMS is kept.
 
     Returns
@@ -140,17 +148,21 @@ def grey_box_loop(problem, adj, optimizer, options, say: Callable[[str], None]):
 
     cfg = {"max_rounds": 8, "tolerance": 0.02, **(options.knn or {})}
     history = [dict(h, knn_round=0) for h in adj.result.history]
-    rms = float(np.sqrt(np.mean(np.sum(adj.residuals_px**2, axis=1))))
+    rms = _inlier_rms(adj)
     best = (rms, adj, None, problem.corrections_px.copy())
     prev_rms, prev_cv = rms, None
-    say(f"kNN round 0: RMS {rms:.4f} px (no correction)")
+    say(f"kNN round 0: RMS {rms:.4f} px within 5 sigma (no correction)")
     for rnd in range(1, int(cfg["max_rounds"]) + 1):
         target = problem.corrections_px + adj.residuals_px
         train = adj.weights >= 0.5
         model = KNNCorrection(random_state=options.seed).fit(problem.uv_px[train], target[train])
         problem.corrections_px = model.predict(problem.uv_px)
-        adj = adjust(problem, adj.values, optimizer, None, estimate_sigma=True)
-        rms = float(np.sqrt(np.mean(np.sum(adj.residuals_px**2, axis=1))))
+        # the first (least-squares) stage leaves out the previous round's outliers
+        consistent = np.linalg.norm(adj.residuals_px, axis=1) < 5.0 * adj.sigma_px
+        adj = adjust(
+            problem, adj.values, optimizer, None, estimate_sigma=True, first_stage_mask=consistent
+        )
+        rms = _inlier_rms(adj)
         offset = history[-1]["iteration"] + 1
         history += [
             dict(h, iteration=h["iteration"] + offset, knn_round=rnd, cv_rmse_px=model.cv_rmse_px_)

@@ -10,8 +10,10 @@ observation or an image are recorded in :attr:`Dataset.dropped` /
 
 from __future__ import annotations
 
+import errno
 import json
 import math
+import numbers
 import os
 import tempfile
 from dataclasses import dataclass, field
@@ -23,6 +25,15 @@ import numpy as np
 DATASET_FORMAT = "gtsam-sphere/dataset@1"
 CHECKPOINTS_FORMAT = "gtsam-sphere/checkpoints@1"
 CALIBRATION_FORMAT = "gtsam-sphere/calibration@1"
+
+#: Largest accepted image side (px). Beyond this, pixel arithmetic leaves the range
+#: where float64 resolves a tenth of a pixel, and no real sensor comes close.
+MAX_IMAGE_SIDE_PX = 1_000_000
+#: Largest accepted absolute coordinate or target sigma (object units). Larger numbers
+#: overflow when squared inside the adjustment long before they can be meaningful.
+MAX_ABS_COORDINATE = 1e12
+#: Smallest accepted positive target sigma (object units); use 0 for exact control.
+MIN_POSITIVE_SIGMA = 1e-12
 
 
 class DatasetError(ValueError):
@@ -114,16 +125,51 @@ class Dataset:
         )
 
 
-def _finite_vector(value: Any, n: int, where: str) -> np.ndarray:
+def _is_number(v: Any) -> bool:
+    """True for a real number that is not a bool (JSON ``true`` is not a number here)."""
+    return isinstance(v, numbers.Real) and not isinstance(v, (bool, np.bool_))
+
+
+def _finite_float(v: Any, where: str, what: str) -> float:
+    """``float(v)`` for a finite real number ``v``, else :class:`DatasetError` naming ``where``."""
+    if not _is_number(v):
+        raise DatasetError(f"{where}: expected a number for {what}, got {v!r}")
+    try:
+        out = float(v)
+    except (OverflowError, ValueError):
+        raise DatasetError(f"{where}: {what} {_short(v)} is too large") from None
+    if not math.isfinite(out):
+        raise DatasetError(f"{where}: {what} is NaN or inf ({v!r})")
+    return out
+
+
+def _short(value: Any, limit: int = 60) -> str:
+    """``repr(value)`` cut to ``limit`` characters, for messages about huge input."""
+    text = repr(value) if not isinstance(value, int) or value.bit_length() < 200 else "<huge int>"
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def _finite_vector(value: Any, n: int, where: str, max_abs: float | None = None) -> np.ndarray:
+    """Validate a JSON list of ``n`` finite numbers into an (n,) float array.
+
+    Raises :class:`DatasetError` naming ``where`` for a wrong length or type, NaN,
+    inf, or (with ``max_abs``) a number larger than ``max_abs`` in magnitude.
+    """
     if not isinstance(value, (list, tuple)) or len(value) != n:
-        raise DatasetError(f"{where}: expected a list of {n} numbers, got {value!r}")
+        raise DatasetError(f"{where}: expected a list of {n} numbers, got {_short(value)}")
     out = []
     for v in value:
-        if isinstance(v, bool) or not isinstance(v, (int, float)):
-            raise DatasetError(f"{where}: expected numbers, got {value!r}")
-        if not math.isfinite(v):
-            raise DatasetError(f"{where}: contains NaN or inf: {value!r}")
-        out.append(float(v))
+        if not _is_number(v):
+            raise DatasetError(f"{where}: expected numbers, got {_short(value)}")
+        try:
+            f = float(v)
+        except (OverflowError, ValueError):
+            raise DatasetError(f"{where}: number too large in {_short(value)}") from None
+        if not math.isfinite(f):
+            raise DatasetError(f"{where}: contains NaN or inf: {_short(value)}")
+        if max_abs is not None and abs(f) > max_abs:
+            raise DatasetError(f"{where}: {f:g} exceeds the largest accepted magnitude {max_abs:g}")
+        out.append(f)
     return np.array(out)
 
 
@@ -135,21 +181,41 @@ def _check_format(doc: Any, expected: str, path: str) -> None:
         family = expected.rsplit("@", 1)[0]
         if isinstance(fmt, str) and fmt.startswith(family + "@"):
             raise DatasetError(
-                f"{path}: unsupported version {fmt!r}; this reader knows {expected!r}"
+                f"{path}: unsupported version {_short(fmt)}; this reader knows {expected!r}"
             )
-        raise DatasetError(f"{path}: 'format' is {fmt!r}, expected {expected!r}")
+        raise DatasetError(f"{path}: 'format' is {_short(fmt)}, expected {expected!r}")
 
 
 def read_json(path: str | os.PathLike) -> Any:
-    """Read a JSON file; a malformed or truncated file raises :class:`DatasetError`."""
+    """Read a JSON file; a missing, unreadable, malformed or truncated file raises
+    :class:`DatasetError` naming the path.
+
+    Parameters
+    ----------
+    path : path-like
+
+    Returns
+    -------
+    object
+        The parsed document (``NaN`` / ``Infinity`` literals parse as floats and are
+        refused later, where the item can be named).
+    """
     path = str(path)
     try:
         with open(path, encoding="utf-8") as fh:
             return json.load(fh)
     except FileNotFoundError:
         raise DatasetError(f"{path}: no such file") from None
+    except IsADirectoryError:
+        raise DatasetError(f"{path}: is a directory, not a JSON file") from None
+    except OSError as exc:
+        raise DatasetError(f"{path}: cannot be read ({exc.strerror or exc})") from None
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise DatasetError(f"{path}: not valid JSON ({exc})") from None
+    except (ValueError, RecursionError) as exc:
+        # ValueError: an integer literal past Python's digit limit; RecursionError:
+        # arrays or objects nested deeper than the parser's stack
+        raise DatasetError(f"{path}: not valid JSON for this reader ({str(exc)[:120]})") from None
 
 
 def parse_dataset(
@@ -166,17 +232,27 @@ def parse_dataset(
     min_observations_per_image : int
         Images with fewer usable observations are skipped and reported.
 
+    Returns
+    -------
+    Dataset
+        Observations outside the image are left out and listed in
+        ``dropped``; images with fewer than ``min_observations_per_image``
+        usable observations are left out and listed in ``skipped_images``.
+
     Raises
     ------
     DatasetError
         For anything that makes the file unusable: wrong format or version,
         missing keys, duplicate target or image ids, an observation of an
-        unknown target, NaN/inf, wrong types. The message names the item.
+        unknown target, NaN/inf, wrong types, an image side above
+        ``MAX_IMAGE_SIDE_PX``, a coordinate or sigma above ``MAX_ABS_COORDINATE``
+        in magnitude, a positive sigma below ``MIN_POSITIVE_SIGMA``, no usable
+        image. The message names the item.
     """
     _check_format(doc, DATASET_FORMAT, source)
     units = doc.get("units", "m")
     if not isinstance(units, str):
-        raise DatasetError(f"{source}: 'units' must be a string, got {units!r}")
+        raise DatasetError(f"{source}: 'units' must be a string, got {_short(units)}")
     cam = doc.get("camera")
     if not isinstance(cam, dict):
         raise DatasetError(f"{source}: missing 'camera' object with width and height")
@@ -185,8 +261,15 @@ def parse_dataset(
     except KeyError as exc:
         raise DatasetError(f"{source}: camera is missing {exc.args[0]!r}") from None
     for name, v in (("width", width), ("height", height)):
-        if isinstance(v, bool) or not isinstance(v, int) or v <= 0:
-            raise DatasetError(f"{source}: camera.{name} must be a positive integer, got {v!r}")
+        if isinstance(v, (bool, np.bool_)) or not isinstance(v, numbers.Integral) or v <= 0:
+            raise DatasetError(
+                f"{source}: camera.{name} must be a positive integer, got {_short(v)}"
+            )
+        if v > MAX_IMAGE_SIDE_PX:
+            raise DatasetError(
+                f"{source}: camera.{name} {_short(v)} exceeds {MAX_IMAGE_SIDE_PX} px"
+            )
+    width, height = int(width), int(height)
 
     targets = doc.get("targets")
     if not isinstance(targets, list) or not targets:
@@ -194,21 +277,30 @@ def parse_dataset(
     ids, xyz, sigma, index = [], [], [], {}
     for k, t in enumerate(targets):
         if not isinstance(t, dict):
-            raise DatasetError(f"{source}: targets[{k}] must be an object, got {t!r}")
+            raise DatasetError(f"{source}: targets[{k}] must be an object, got {_short(t)}")
         tid = t.get("id")
         if not isinstance(tid, str) or not tid:
-            raise DatasetError(f"{source}: targets[{k}] has no string 'id' (got {tid!r})")
+            raise DatasetError(f"{source}: targets[{k}] has no string 'id' (got {_short(tid)})")
         if tid in index:
             raise DatasetError(f"{source}: duplicate target id {tid!r} (targets[{k}])")
         where = f"{source}: target {tid!r}"
-        p = _finite_vector(t.get("xyz"), 3, where + " xyz")
+        if "xyz" not in t:
+            raise DatasetError(f"{where}: missing 'xyz'")
+        p = _finite_vector(t["xyz"], 3, where + " xyz", MAX_ABS_COORDINATE)
         s = t.get("sigma", None)
         if s is None:
             s = math.nan
-        elif isinstance(s, bool) or not isinstance(s, (int, float)) or not math.isfinite(s):
-            raise DatasetError(f"{where}: sigma must be a finite number >= 0, got {s!r}")
-        elif s < 0:
-            raise DatasetError(f"{where}: sigma must be >= 0, got {s!r}")
+        else:
+            if not _is_number(s):
+                raise DatasetError(f"{where}: sigma must be a finite number >= 0, got {_short(s)}")
+            s = _finite_float(s, where, "sigma")
+            if s < 0:
+                raise DatasetError(f"{where}: sigma must be >= 0, got {s!r}")
+            if 0 < s < MIN_POSITIVE_SIGMA or s > MAX_ABS_COORDINATE:
+                raise DatasetError(
+                    f"{where}: sigma {s:g} is outside [{MIN_POSITIVE_SIGMA:g}, "
+                    f"{MAX_ABS_COORDINATE:g}] (use 0 for exact control, omit it for free)"
+                )
         index[tid] = len(ids)
         ids.append(tid)
         xyz.append(p)
@@ -228,7 +320,7 @@ def parse_dataset(
             raise DatasetError(f"{source}: images[{k}] must be an object")
         iid = im.get("id")
         if not isinstance(iid, str) or not iid:
-            raise DatasetError(f"{source}: images[{k}] has no string 'id' (got {iid!r})")
+            raise DatasetError(f"{source}: images[{k}] has no string 'id' (got {_short(iid)})")
         if iid in seen_images:
             raise DatasetError(f"{source}: duplicate image id {iid!r} (images[{k}])")
         seen_images.add(iid)
@@ -243,12 +335,16 @@ def parse_dataset(
             if not isinstance(ob, dict):
                 raise DatasetError(f"{where}: must be an object")
             tid = ob.get("target")
+            if not isinstance(tid, str):
+                raise DatasetError(f"{where}: 'target' must be a string id, got {_short(tid)}")
             if tid not in index:
                 raise DatasetError(f"{where}: unknown target id {tid!r}")
             if tid in seen_targets:
                 raise DatasetError(f"{where}: target {tid!r} observed twice in this image")
             seen_targets.add(tid)
-            p = _finite_vector(ob.get("uv"), 2, where + " uv")
+            if "uv" not in ob:
+                raise DatasetError(f"{where}: missing 'uv'")
+            p = _finite_vector(ob["uv"], 2, where + " uv")
             if not (-0.5 <= p[0] <= width - 0.5 and -0.5 <= p[1] <= height - 0.5):
                 dropped.append((iid, tid, f"uv {p.tolist()} outside the {width}x{height} image"))
                 continue
@@ -304,41 +400,61 @@ def load_dataset(path: str | os.PathLike, min_observations_per_image: int = 4) -
 def load_checkpoints(path: str | os.PathLike) -> tuple[list[str], np.ndarray, str]:
     """Read a ``gtsam-sphere/checkpoints@1`` file.
 
+    Parameters
+    ----------
+    path : path-like
+
     Returns
     -------
     ids : list of str, length K
     xyz : ndarray, shape (K, 3)
         Independently surveyed coordinates, in ``units``.
     units : str
+
+    Raises
+    ------
+    DatasetError
+        Wrong format or version, missing or duplicate ids, NaN/inf, wrong types;
+        the message names the check point.
     """
     source = str(path)
     doc = read_json(path)
     _check_format(doc, CHECKPOINTS_FORMAT, source)
+    units = doc.get("units", "m")
+    if not isinstance(units, str):
+        raise DatasetError(f"{source}: 'units' must be a string, got {_short(units)}")
     targets = doc.get("targets")
     if not isinstance(targets, list) or not targets:
         raise DatasetError(f"{source}: 'targets' must be a non-empty list")
-    ids, xyz = [], []
+    ids: list[str] = []
+    seen: set[str] = set()
+    xyz = []
     for k, t in enumerate(targets):
-        if not isinstance(t, dict) or not isinstance(t.get("id"), str):
-            raise DatasetError(f"{source}: targets[{k}] needs a string 'id'")
-        if t["id"] in ids:
-            raise DatasetError(f"{source}: duplicate check point id {t['id']!r}")
+        if not isinstance(t, dict) or not isinstance(t.get("id"), str) or not t["id"]:
+            raise DatasetError(f"{source}: targets[{k}] needs a non-empty string 'id'")
+        if t["id"] in seen:
+            raise DatasetError(f"{source}: duplicate check point id {t['id']!r} (targets[{k}])")
+        seen.add(t["id"])
         ids.append(t["id"])
-        xyz.append(_finite_vector(t.get("xyz"), 3, f"{source}: check point {t['id']!r} xyz"))
-    return ids, np.array(xyz), doc.get("units", "m")
+        where = f"{source}: check point {t['id']!r} xyz"
+        xyz.append(_finite_vector(t.get("xyz"), 3, where, MAX_ABS_COORDINATE))
+    return ids, np.array(xyz), units
 
 
-def _jsonable(obj: Any) -> Any:
+def _jsonable(obj: Any, where: str = "") -> Any:
+    """Plain JSON types for ``obj``; NaN or inf raise ``ValueError`` naming the key path."""
     if isinstance(obj, dict):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
+        return {str(k): _jsonable(v, f"{where}.{k}" if where else str(k)) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
+        return [_jsonable(v, f"{where}[{i}]") for i, v in enumerate(obj)]
     if isinstance(obj, np.ndarray):
-        return _jsonable(obj.tolist())
+        return _jsonable(obj.tolist(), where)
     if isinstance(obj, (np.floating, float)):
         v = float(obj)
         if not math.isfinite(v):
-            raise ValueError("refusing to write NaN or inf to a JSON output file")
+            raise ValueError(
+                f"refusing to write NaN or inf to a JSON output file (at {where or 'top level'})"
+            )
         return v
     if isinstance(obj, np.integer):
         return int(obj)
@@ -351,13 +467,40 @@ def write_json_atomic(path: str | os.PathLike, doc: Any, indent: int | None = 1)
     """Write ``doc`` as JSON to ``path`` atomically (temporary file + rename).
 
     A reader never sees a half-written file; NaN or inf anywhere raises
-    ``ValueError`` and leaves any existing file untouched.
+    ``ValueError`` naming the key path and leaves any existing file untouched.
+
+    Parameters
+    ----------
+    path : path-like
+        Destination; missing parent directories are created.
+    doc : object
+        JSON-able document (dicts, lists, numbers, strings, numpy arrays and scalars).
+    indent : int or None
+        ``json.dumps`` indentation.
+
+    Returns
+    -------
+    pathlib.Path
+        ``path``.
+
+    Raises
+    ------
+    ValueError
+        NaN or inf in ``doc``.
+    OSError
+        ``path`` cannot be written (a directory, no permission, ...); the
+        exception's ``filename`` is ``path``, never the temporary file.
     """
     path = Path(path)
     text = json.dumps(_jsonable(doc), indent=indent, allow_nan=False)
+    if path.is_dir():
+        raise IsADirectoryError(errno.EISDIR, "is a directory, not a file", str(path))
     directory = path.parent if str(path.parent) else Path(".")
-    directory.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=directory)
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=directory)
+    except OSError as exc:
+        raise type(exc)(exc.errno, exc.strerror, str(path)) from exc
     try:
         with os.fdopen(fd, "w", encoding="utf-8") as fh:
             fh.write(text)
@@ -366,8 +509,10 @@ def write_json_atomic(path: str | os.PathLike, doc: Any, indent: int | None = 1)
             os.fsync(fh.fileno())
         os.chmod(tmp, 0o644)
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as exc:
         if os.path.exists(tmp):
             os.unlink(tmp)
+        if isinstance(exc, OSError) and exc.errno is not None:
+            raise type(exc)(exc.errno, exc.strerror, str(path)) from exc
         raise
     return path

@@ -8,9 +8,10 @@ Variables (``docs/conventions.md``):
 - ``k0``: intrinsics vector ``[xp, yp, c, *brown]`` (px, px, px, dimensionless).
 
 Observations are grouped into :class:`ObservationBlock` factors, each a
-``gtsam.CustomFactor`` that evaluates all its observations in one vectorised
-numpy call: free targets are grouped a few points per factor (all images
-seeing them), exact-control targets per image. Robust weighting stays per
+``gtsam.CustomFactor``: free targets in tiles of a few targets by a few
+images seeing them, exact-control targets per image. The blocks of one graph
+are evaluated together, in one vectorised numpy pass per ``Values``
+(:class:`_SharedEvaluation`). Robust weighting stays per
 observation: each observation's 2-vector residual is weighted by the
 M-estimator on its own norm, exactly as ``gtsam.noiseModel.Robust`` would do
 for a single-observation factor (IRLS weights ``sqrt(w)`` on the linear system,
@@ -30,7 +31,6 @@ import gtsam
 import numpy as np
 
 from .camera import sphere_residual
-from .geometry import skew
 
 
 def pose_key(i: int) -> int:
@@ -103,8 +103,215 @@ class NoiseOptions:
     loss_threshold: float = 2.45
 
 
+#: ``Values.extract(keys)`` (GTSAM 4.3's Python): without it, blocks are evaluated alone
+_VALUES_EXTRACT = hasattr(gtsam.Values, "extract")
+
+
+class _SharedEvaluation:
+    """One vectorised evaluation of all observations of a set of blocks, per ``Values``.
+
+    GTSAM linearises (or evaluates) a graph by calling every factor's callback
+    in turn with the same ``Values``. The first callback of a set evaluates all
+    its observations in one numpy pass; the others read their slices.
+
+    A stored evaluation serves a block only if the ``Values`` the callback
+    receives holds, for every key of that block, exactly the numbers of the
+    snapshot the evaluation was computed from (``Values.equals`` with tolerance
+    0 on the block's keys: same keys, same types, IEEE-equal numbers). A block's
+    result depends on nothing else, so a stored answer is the answer; the
+    identity of the ``Values`` is never used. States with a non-finite number
+    (which ``equals`` matches loosely: NaN to NaN, +inf to -inf) are not stored:
+    the block is then evaluated alone.
+
+    Jacobians go to one persistent buffer holding every block's zero-padded,
+    Fortran-ordered Jacobian blocks: the zeros are written once, here, and an
+    evaluation writes the non-zeros only (one scatter for the whole set). Each
+    block also keeps a C++ copy of its blocks (a ``gtsam.JacobianVector``): a
+    callback refreshes it with one numpy copy per key and hands it to GTSAM in
+    one C++ copy (``H[:] = ...``), cheaper than converting an array per key.
+
+    Parameters
+    ----------
+    blocks : list of ObservationBlock
+        Blocks of one model (same measurement model and noise options).
+    """
+
+    def __init__(self, blocks: list[ObservationBlock]):
+        first = blocks[0]
+        model = (first.brown_names, first.brown_scale_px, first.noise, first.radial_names)
+        for b in blocks:
+            if (b.brown_names, b.brown_scale_px, b.noise, b.radial_names) != model:
+                raise ValueError("blocks sharing an evaluation must share model and noise")
+        self.brown_names, self.brown_scale_px, self.noise, self.radial_names = model
+        self.pose_keys = sorted({k for b in blocks for k in b.pose_keys})
+        self.point_keys = sorted({k for b in blocks for k in b.point_keys})
+        self.all_keys = sorted({*self.pose_keys, *self.point_keys, INTRINSICS_KEY})
+        pose_sorted = np.array(self.pose_keys, np.int64)
+        point_sorted = np.array(self.point_keys, np.int64)
+        n_theta = 3 + len(self.radial_names or ()) + len(self.brown_names)
+        starts = np.cumsum([0] + [b.n for b in blocks]).tolist()
+        self.n = starts[-1]
+        self.obs_slices = [slice(a, b) for a, b in zip(starts, starts[1:])]
+        self.row_slices = [slice(2 * a, 2 * b) for a, b in zip(starts, starts[1:])]
+        gp, gq = [], []
+        # buffer position of d(e_a)/d[omega, v, point, theta]_c of observation n at [a, c, n]
+        pos = np.empty((2, 9 + n_theta, self.n), np.intp)
+        layout = []  # per block: (offset, columns) of each key's block
+        size = 0
+        for b, s in zip(blocks, starts):
+            rows = 2 * b.n
+            cols = [3] * len(b.point_keys) + [6] * len(b.pose_keys) + [n_theta]
+            offsets = size + rows * np.concatenate([[0], np.cumsum(cols)[:-1]])
+            layout.append(list(zip(offsets.tolist(), cols)))
+            size += rows * sum(cols)
+            r = 2 * np.arange(b.n) + np.arange(2)[:, None, None]  # row of e_a, (2, 1, n)
+            col = rows * np.arange(9 + n_theta)[:, None]  # column offsets, (9 + n_theta, 1)
+            n_pt = len(b.point_keys)
+            pos[:, :6, s : s + b.n] = offsets[n_pt + b.pose_local] + col[:6] + r
+            pos[:, 6:9, s : s + b.n] = offsets[np.maximum(b.point_local, 0)] + col[:3] + r
+            pos[:, 9:, s : s + b.n] = offsets[-1] + col[:n_theta] + r
+            keys = np.array(b.pose_keys, np.int64)[b.pose_local]
+            gp.append(np.searchsorted(pose_sorted, keys))
+            keys = np.array(b.point_keys + [0], np.int64)[b.point_local]  # -1: the dummy 0
+            gq.append(np.where(b.free, np.searchsorted(point_sorted, keys), -1))
+        # fixed (exact control) observations write their point columns to a trash area
+        free = np.concatenate([b.free for b in blocks])
+        pos[:, 6:9, ~free] = size + 3 * np.arange(2)[:, None, None] + np.arange(3)[:, None]
+        self.pos = pos
+        self.buf = np.zeros(size + 6)
+        self.views = [
+            [self.buf[o : o + c * 2 * b.n].reshape(c, 2 * b.n).T for o, c in lay]
+            for b, lay in zip(blocks, layout)
+        ]
+        self.gp = np.concatenate(gp).astype(np.intp)
+        self.gq = np.concatenate(gq).astype(np.intp)
+        self.free = free
+        self.all_free = bool(free.all())
+        self.fixed_xyz = np.concatenate([b.fixed_xyz for b in blocks]).T.copy()  # (3, n)
+        self.uv_px = np.concatenate([b.uv_px for b in blocks])
+        self.snapshot: gtsam.Values | None = None  # the Values of the stored evaluation
+        self.rejected: gtsam.Values | None = None  # the last non-finite state
+        self.has_jacobians = False
+        self.e_px = self.e_cost = self.e_lin = np.zeros(0)
+        self._native: list[tuple[gtsam.JacobianVector, list[np.ndarray]] | None] = [None] * len(
+            blocks
+        )
+
+    def native(self, index: int) -> tuple[gtsam.JacobianVector, list[np.ndarray]]:
+        """Block ``index``'s C++ Jacobian blocks and writable numpy views of them."""
+        if self._native[index] is None:
+            native = gtsam.JacobianVector(self.views[index])
+            self._native[index] = (native, [native[q] for q in range(len(native))])
+        return self._native[index]
+
+    def ready(self, keys: list[int], values: gtsam.Values, jacobians: bool) -> bool:
+        """Make the stored evaluation valid for the block of ``keys`` at ``values``.
+
+        Returns False when it cannot be stored (a key of the set is missing
+        from ``values``, or a number is not finite): evaluate the block alone.
+        """
+        snap = self.snapshot
+        if (
+            snap is not None
+            and (self.has_jacobians or not jacobians)
+            and values.extract(keys).equals(snap.extract(keys), 0.0)
+        ):
+            return True
+        if self.rejected is not None and values.extract(keys).equals(
+            self.rejected.extract(keys), 0.0
+        ):
+            return False  # the non-finite state met just before: no second try
+        self.snapshot = self.rejected = None
+        try:
+            snap = values.extract(self.all_keys)
+        except RuntimeError:
+            return False
+        if not self._compute(snap, jacobians):
+            self.rejected = snap
+            return False
+        self.snapshot, self.has_jacobians = snap, jacobians
+        return True
+
+    def compute(self, values: gtsam.Values, jacobians: bool) -> None:
+        """Evaluate at ``values``, not stored (a block evaluated alone)."""
+        self.snapshot = self.rejected = None
+        self._compute(values, jacobians)
+
+    def _compute(self, values: gtsam.Values, jacobians: bool) -> bool:
+        """Evaluate every observation; returns whether all inputs were finite."""
+        if _VALUES_EXTRACT:
+            T = gtsam.utilities.extractPose3(values.extract(self.pose_keys))  # R (by rows), t
+            P = np.zeros((0, 3))
+            if self.point_keys:
+                P = gtsam.utilities.extractPoint3(values.extract(self.point_keys))
+            if T.shape[0] != len(self.pose_keys) or P.shape[0] != len(self.point_keys):
+                raise TypeError("pose keys must hold Pose3 values and target keys Point3 values")
+        else:
+            M = [values.atPose3(k).matrix() for k in self.pose_keys]
+            T = np.array([np.concatenate([m[:3, :3].ravel(), m[:3, 3]]) for m in M])
+            P = np.array([values.atPoint3(k) for k in self.point_keys]).reshape(-1, 3)
+        theta = values.atVector(INTRINSICS_KEY)
+        # one row per component, one column per observation
+        Tn = np.ascontiguousarray(T.T)[:, self.gp]
+        R = Tn[:9].reshape(3, 3, self.n)  # R[i, j] = (R_wc)_ij
+        if self.all_free:
+            pw = np.ascontiguousarray(P.T)[:, self.gq]
+        else:
+            pw = self.fixed_xyz.copy()
+            pw[:, self.free] = P.T[:, self.gq[self.free]]
+        d = pw - Tn[9:]
+        pc = R[0] * d[0] + R[1] * d[1] + R[2] * d[2]  # R_wc^T (p_world - t)
+        out = sphere_residual(
+            theta,
+            self.brown_names,
+            self.brown_scale_px,
+            self.uv_px,
+            pc.T,
+            jacobians=jacobians,
+            radial_names=self.radial_names,
+        )
+        e = out[0] if jacobians else out
+        sigma = self.noise.sigma_px
+        r = np.sqrt((e * e).sum(1)) / sigma
+        w, rho = robust_weight(r, self.noise.loss, self.noise.loss_threshold)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            cost_scale = np.where(r > 0, np.sqrt(2.0 * rho) / r, 1.0) / sigma
+        self.e_px = e
+        self.e_cost = (e * cost_scale[:, None]).ravel()
+        if jacobians:
+            _, J_theta, J_pc = out
+            scale = np.sqrt(w) / sigma
+            self.e_lin = (e * scale[:, None]).ravel()
+            J = np.empty(self.pos.shape)  # [row u/v, column, observation]
+            Jc = J[:, 3:6]
+            np.multiply(J_pc.transpose(1, 2, 0), scale, out=Jc)  # weighted d(e)/d(pc)
+            px, py, pz = pc
+            # d(e)/d(omega) = J_pc [pc]x: row by row, the cross product (row x pc)
+            np.multiply(Jc[:, 1], pz, out=J[:, 0])
+            J[:, 0] -= Jc[:, 2] * py
+            np.multiply(Jc[:, 2], px, out=J[:, 1])
+            J[:, 1] -= Jc[:, 0] * pz
+            np.multiply(Jc[:, 0], py, out=J[:, 2])
+            J[:, 2] -= Jc[:, 1] * px
+            # d(e)/d(p_world) = J_pc R_wc^T
+            Jp = J[:, 6:9]
+            np.multiply(Jc[:, 0, None], R[:, 0], out=Jp)
+            Jp += Jc[:, 1, None] * R[:, 1]
+            Jp += Jc[:, 2, None] * R[:, 2]
+            np.negative(Jc, out=Jc)  # d(pc)/d(v) = -I
+            np.multiply(J_theta.transpose(1, 2, 0), scale, out=J[:, 9:])
+            self.buf[self.pos] = J
+        return bool(np.isfinite(T).all() and np.isfinite(P).all() and np.isfinite(theta).all())
+
+
 class ObservationBlock:
     """A vectorised group of observations behind one ``gtsam.CustomFactor``.
+
+    Blocks built together (:meth:`share_evaluation`, as :class:`BundleProblem`
+    does) are evaluated together: the first callback at a given ``Values``
+    evaluates all their observations in one numpy pass and the others read
+    their part of it (exactly, see :class:`_SharedEvaluation`). A block on its
+    own evaluates its own observations at every call.
 
     Parameters
     ----------
@@ -123,6 +330,8 @@ class ObservationBlock:
     brown_names : tuple of str
     brown_scale_px : float
     noise : NoiseOptions
+    radial_names : tuple of str or None
+        Radial-mapping coefficients in the intrinsics vector; None: sphere mapping.
     """
 
     def __init__(
@@ -136,9 +345,11 @@ class ObservationBlock:
         brown_names,
         brown_scale_px,
         noise: NoiseOptions,
+        radial_names: tuple[str, ...] | None = None,
     ):
-        self.pose_keys = list(pose_keys)
-        self.point_keys = list(point_keys)
+        self.radial_names = None if radial_names is None else tuple(radial_names)
+        self.pose_keys = [int(k) for k in pose_keys]
+        self.point_keys = [int(k) for k in point_keys]
         self.pose_local = np.asarray(pose_local, int)
         self.point_local = np.asarray(point_local, int)
         self.free = self.point_local >= 0
@@ -149,12 +360,32 @@ class ObservationBlock:
         self.noise = noise
         self.n = len(self.uv_px)
         self.keys = self.point_keys + self.pose_keys + [INTRINSICS_KEY]
-        self._rows = np.arange(self.n)
+        self._shared: _SharedEvaluation | None = None
+        self._index = 0
+        self._alone: _SharedEvaluation | None = None
+
+    @staticmethod
+    def share_evaluation(blocks: list[ObservationBlock]) -> None:
+        """Evaluate ``blocks`` together from now on (one numpy pass per ``Values``)."""
+        if blocks and _VALUES_EXTRACT:
+            shared = _SharedEvaluation(blocks)
+            for i, b in enumerate(blocks):
+                b._shared, b._index = shared, i
 
     def factor(self) -> gtsam.CustomFactor:
         """The ``gtsam.CustomFactor`` (unit noise: whitening is done inside)."""
         model = gtsam.noiseModel.Unit.Create(2 * self.n)
         return gtsam.CustomFactor(model, self.keys, self.evaluate)
+
+    def _evaluation(self, values: gtsam.Values, jacobians: bool) -> tuple[_SharedEvaluation, int]:
+        """The evaluation holding this block's results at ``values``, and its index there."""
+        shared = self._shared
+        if shared is not None and shared.ready(self.keys, values, jacobians):
+            return shared, self._index
+        if self._alone is None:
+            self._alone = _SharedEvaluation([self])
+        self._alone.compute(values, jacobians)
+        return self._alone, 0
 
     def state(self, values: gtsam.Values):
         """Camera-frame points (n,3), rotations R_wc (n,3,3) and theta from ``values``."""
@@ -170,8 +401,8 @@ class ObservationBlock:
 
     def residuals_px(self, values: gtsam.Values) -> np.ndarray:
         """Unweighted residuals ``measured - predicted`` (n, 2) px."""
-        pc, _, theta = self.state(values)
-        return sphere_residual(theta, self.brown_names, self.brown_scale_px, self.uv_px, pc)
+        ev, i = self._evaluation(values, False)
+        return ev.e_px[ev.obs_slices[i]].copy()
 
     def evaluate(self, this, values: gtsam.Values, H):
         """CustomFactor callback: whitened, robustly weighted error (2n,).
@@ -181,42 +412,19 @@ class ObservationBlock:
         system ``sqrt(w) * e / sigma`` and ``H`` receives the matching
         Jacobian blocks, Fortran-ordered, one per key.
         """
-        pc, R, theta = self.state(values)
-        sigma = self.noise.sigma_px
-        k = self.noise.loss_threshold
+        ev, i = self._evaluation(values, H is not None)
         if H is None:
-            e = sphere_residual(theta, self.brown_names, self.brown_scale_px, self.uv_px, pc)
-            r = np.sqrt((e * e).sum(1)) / sigma
-            _, rho = robust_weight(r, self.noise.loss, k)
-            with np.errstate(invalid="ignore", divide="ignore"):
-                scale = np.where(r > 0, np.sqrt(2.0 * rho) / r, 1.0) / sigma
-            return (e * scale[:, None]).ravel()
-        e, J_theta, J_pc = sphere_residual(
-            theta, self.brown_names, self.brown_scale_px, self.uv_px, pc, jacobians=True
-        )
-        r = np.sqrt((e * e).sum(1)) / sigma
-        w, _ = robust_weight(r, self.noise.loss, k)
-        scale = np.sqrt(w) / sigma
-        J_pc = J_pc * scale[:, None, None]
-        n = self.n
-        # pose: d(pc)/d(omega) = [pc]x, d(pc)/d(v) = -I (right perturbation of world_from_cam)
-        J_pose = np.concatenate([J_pc @ skew(pc), -J_pc], axis=2)
-        blocks = np.zeros((n, 2, len(self.pose_keys), 6))
-        blocks[self._rows, :, self.pose_local, :] = J_pose
-        out = []
-        if self.point_keys:
-            J_pt = np.einsum("nab,ncb->nac", J_pc, R)  # J_pc @ R_wc^T
-            pblocks = np.zeros((n, 2, len(self.point_keys), 3))
-            f = self.free
-            pblocks[self._rows[f], :, self.point_local[f], :] = J_pt[f]
-            for q in range(len(self.point_keys)):
-                out.append(np.asfortranarray(pblocks[:, :, q, :].reshape(2 * n, 3)))
-        for q in range(len(self.pose_keys)):
-            out.append(np.asfortranarray(blocks[:, :, q, :].reshape(2 * n, 6)))
-        out.append(np.asfortranarray((J_theta * scale[:, None, None]).reshape(2 * n, -1)))
-        for q, block in enumerate(out):
-            H[q] = block
-        return (e * scale[:, None]).ravel()
+            return ev.e_cost[ev.row_slices[i]].copy()
+        if isinstance(H, gtsam.JacobianVector):
+            # one C++ copy of all blocks (H[q] = array per key costs a conversion each)
+            native, targets = ev.native(i)
+            for target, block in zip(targets, ev.views[i]):
+                np.copyto(target, block)
+            H[:] = native
+        else:  # a Python list keeps the arrays: give it its own
+            for q, block in enumerate(ev.views[i]):
+                H[q] = block.copy(order="F")
+        return ev.e_lin[ev.row_slices[i]].copy()
 
 
 class NormalOffsetFactor:
@@ -257,6 +465,130 @@ def choose_minimal_constraint_points(xyz: np.ndarray) -> tuple[int, int, int]:
     return a, b, c
 
 
+#: images per observation block of free targets (see :func:`_tile_observations`)
+IMAGES_PER_FACTOR = 8
+
+
+def _group_targets(seen: list[np.ndarray], n_images: int, size: int) -> list[list[int]]:
+    """Greedy partition of targets into groups of at most ``size`` seen by similar images.
+
+    ``seen[j]`` holds the images seeing target ``j``. Seeds are taken in order;
+    a group grows by the remaining target whose images have the largest
+    Jaccard index with the group's (ties: lowest index) and stops at ``size``
+    targets or when no remaining target shares an image with the group.
+    """
+    n = len(seen)
+    holders = [[] for _ in range(n_images)]  # targets seen by each image
+    for j, images in enumerate(seen):
+        for i in images.tolist():
+            holders[i].append(j)
+    holders = [np.asarray(h, np.intp) for h in holders]
+    count = np.array([len(x) for x in seen])
+    left = np.ones(n, bool)
+    inter = np.zeros(n)  # images each target shares with the group being grown
+    groups = []
+    for seed in range(n):
+        if not left[seed]:
+            continue
+        group, union, j = [], set(), seed
+        while True:
+            group.append(j)
+            left[j] = False
+            for i in seen[j].tolist():
+                if i not in union:
+                    union.add(i)
+                    inter[holders[i]] += 1
+            if len(group) >= size:
+                break
+            score = np.where(left & (inter > 0), inter / (count + len(union) - inter), -1.0)
+            j = int(np.argmax(score))
+            if score[j] <= 0:
+                break
+        for i in union:
+            inter[holders[i]] -= 1
+        groups.append(group)
+    return groups
+
+
+def _group_images(masks: list[int], size: int) -> list[list[int]]:
+    """Partition images into ``ceil(n / size)`` groups of balanced size.
+
+    ``masks[k]`` is the bit mask of the targets image ``k`` sees. Seeds are
+    taken in order; a group grows by the remaining image whose mask has the
+    largest Jaccard index with the group's (ties: first in order).
+    """
+    n_groups = -(-len(masks) // size)
+    cap = -(-len(masks) // n_groups)
+    left = list(range(len(masks)))
+    groups = []
+    while left:
+        seed = left.pop(0)
+        group, union = [seed], masks[seed]
+        while left and len(group) < cap:
+            best, best_score = left[0], -1.0
+            for k in left:
+                score = (masks[k] & union).bit_count() / (masks[k] | union).bit_count()
+                if score > best_score:
+                    best, best_score = k, score
+            left.remove(best)
+            group.append(best)
+            union |= masks[best]
+        groups.append(group)
+    return groups
+
+
+def _tile_observations(
+    target: np.ndarray, image: np.ndarray, targets_per_tile: int, images_per_tile: int
+) -> list[np.ndarray]:
+    """Partition observations (target and image of each) into tiles.
+
+    The targets are grouped (at most ``targets_per_tile``) by similar sets of
+    images, seeded in the order of the first image seeing them; each group's
+    images are split into balanced groups (at most ``images_per_tile``) seeing
+    similar subsets of the group; a tile is a target group times an image group.
+
+    Why: a ``CustomFactor``'s Jacobian is dense per key, so a tile of ``T``
+    targets and ``I`` images carries ``2 (3 T + 6 I + n_theta)`` numbers per
+    observation (small tiles), while the per-factor costs (callback, checks,
+    one copy per key) are shared by its observations (well-filled tiles).
+    A target's observations stay in its group's tiles, so the elimination
+    (targets first) meets each group once, as one clique.
+
+    Returns
+    -------
+    list of ndarray of int
+        Observation indices of each tile.
+    """
+    targets, t_of = np.unique(target, return_inverse=True)
+    n_images = int(image.max()) + 1
+    by_target = np.argsort(t_of, kind="stable")
+    bounds = np.searchsorted(t_of[by_target], np.arange(len(targets) + 1))
+    pairs = np.unique(t_of * n_images + image)  # (target, image) sorted
+    pair_t, pair_i = np.divmod(pairs, n_images)
+    pair_bounds = np.searchsorted(pair_t, np.arange(len(targets) + 1))
+    seen = [pair_i[pair_bounds[j] : pair_bounds[j + 1]] for j in range(len(targets))]
+    order = np.argsort(pair_i[pair_bounds[:-1]], kind="stable")  # by first image
+    tiles = []
+    for group in _group_targets([seen[j] for j in order], n_images, targets_per_tile):
+        members = [int(order[g]) for g in group]
+        obs = np.concatenate([by_target[bounds[j] : bounds[j + 1]] for j in members])
+        masks: dict[int, int] = {}
+        for bit, j in enumerate(members):
+            for i in seen[j].tolist():
+                masks[i] = masks.get(i, 0) | (1 << bit)
+        if len(masks) <= images_per_tile:
+            tiles.append(np.sort(obs))
+            continue
+        images = sorted(masks, key=lambda i: (-masks[i].bit_count(), i))
+        tile_of = np.zeros(n_images, np.intp)
+        split = _group_images([masks[i] for i in images], images_per_tile)
+        for t, members_i in enumerate(split):
+            tile_of[[images[k] for k in members_i]] = t
+        tile = tile_of[image[obs]]
+        tiles += [np.sort(obs[tile == t]) for t in range(len(split))]
+    return tiles
+
+
 @dataclass
 class BundleProblem:
     """Everything needed to (re)build the bundle-adjustment graph.
@@ -274,7 +606,10 @@ class BundleProblem:
     brown_scale_px : float
     noise : NoiseOptions
     points_per_factor : int
-        Free targets per :class:`ObservationBlock`.
+        At most this many free targets per :class:`ObservationBlock` (a tile of
+        targets by at most ``IMAGES_PER_FACTOR`` images, :func:`_tile_observations`).
+    radial_names : tuple of str or None
+        Radial-mapping coefficients estimated (``Model.RADIAL``); None: sphere mapping.
     """
 
     obs_image: np.ndarray
@@ -286,10 +621,11 @@ class BundleProblem:
     brown_names: tuple[str, ...] = ()
     brown_scale_px: float = 1000.0
     noise: NoiseOptions = field(default_factory=NoiseOptions)
-    points_per_factor: int = 4
+    points_per_factor: int = 8
     corrections_px: np.ndarray | None = None
     datum_sigma_scale: float = 1e-3
     fixed_intrinsics: np.ndarray | None = None
+    radial_names: tuple[str, ...] | None = None
 
     def __post_init__(self):
         if self.corrections_px is None:
@@ -320,8 +656,13 @@ class BundleProblem:
         return self.uv_px - self.corrections_px
 
     def _groups(self) -> list[np.ndarray]:
-        """Observation indices of each block: exact control per image, then free
-        targets ``points_per_factor`` at a time, ordered by the first image seeing them."""
+        """Observation indices of each block.
+
+        Exact control: one block per image (its variables are the pose and the
+        intrinsics, so nothing is zero-padded). Free targets: tiles of
+        :func:`_tile_observations`, at most ``points_per_factor`` targets by
+        ``IMAGES_PER_FACTOR`` images.
+        """
         fixed_obs = self.fixed[self.obs_target]
         groups = [
             np.flatnonzero(fixed_obs & (self.obs_image == i))
@@ -329,13 +670,11 @@ class BundleProblem:
         ]
         free_idx = np.flatnonzero(~fixed_obs)
         if len(free_idx):
-            by_target: dict[int, list[int]] = {}
-            for o in free_idx:
-                by_target.setdefault(int(self.obs_target[o]), []).append(int(o))
-            order = sorted(by_target, key=lambda t: (self.obs_image[by_target[t]].min(), t))
             G = max(1, int(self.points_per_factor))
-            for a in range(0, len(order), G):
-                groups.append(np.array([o for t in order[a : a + G] for o in by_target[t]]))
+            tiles = _tile_observations(
+                self.obs_target[free_idx], self.obs_image[free_idx], G, IMAGES_PER_FACTOR
+            )
+            groups += [free_idx[t] for t in tiles]
         return groups
 
     def _make_blocks(self) -> list[ObservationBlock]:
@@ -359,8 +698,10 @@ class BundleProblem:
                     self.brown_names,
                     self.brown_scale_px,
                     self.noise,
+                    self.radial_names,
                 )
             )
+        ObservationBlock.share_evaluation(blocks)
         return blocks
 
     def build(self) -> gtsam.NonlinearFactorGraph:
@@ -416,9 +757,9 @@ class BundleProblem:
 
     def n_unknowns(self) -> int:
         """Number of estimated parameters (6 per pose, 3 per free target, intrinsics)."""
-        n_theta = 0 if self.fixed_intrinsics is not None else 3 + len(self.brown_names)
+        n_theta = 0 if self.fixed_intrinsics is not None else len(self.intrinsics_names())
         return 6 * len(np.unique(self.obs_image)) + 3 * len(self.free_targets) + n_theta
 
     def intrinsics_names(self) -> list[str]:
         """Names of the intrinsics vector's entries."""
-        return ["xp_px", "yp_px", "c_px", *self.brown_names]
+        return ["xp_px", "yp_px", "c_px", *(self.radial_names or ()), *self.brown_names]

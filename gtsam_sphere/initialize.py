@@ -18,8 +18,9 @@ Strategy
 --------
 1. Coarse search: for each kind, a geometric grid of ``f`` (ratio ``1.15`` between
    neighbours, ~60 hypotheses in all) spanning diagonal fields of view of 40 deg up to
-   160 (pinhole), 360 (equidistant) or 180 deg (sphere; down to an image circle of 0.4
-   times the short side). Each hypothesis runs :func:`~gtsam_sphere.p3p.ransac_pose`
+   160 (pinhole), 360 (equidistant; also 360 deg on a circle of 0.4 times the short
+   side: circular fisheyes) or 180 deg (sphere; down to an image circle of 0.4 times
+   the short side). Each hypothesis runs :func:`~gtsam_sphere.p3p.ransac_pose`
    (no refinement, 64 samples) on the 4 images with most observations with a loose
    threshold ``3 * threshold_rad``, scored by the MSAC cost ``sum(min(err^2, thr^2))``
    (inliers first, then their errors) twice: over all observations, and over the
@@ -159,6 +160,8 @@ def _focal_grid(mapping: str, width: int, height: int) -> np.ndarray:
     f_lo = f_of_fov(_MAX_FOV_DEG[mapping])
     if mapping == "sphere":  # circular orthographic image inside the frame
         f_lo = min(f_lo, 0.4 * min(width, height))
+    if mapping == "equidistant":  # circular fisheye: 360 deg on a circle inside the frame
+        f_lo = min(f_lo, 0.4 * min(width, height) / np.pi)
     n = int(np.ceil(np.log(f_hi / f_lo) / np.log(_GRID_RATIO))) + 1
     return np.geomspace(f_lo, f_hi, n)
 

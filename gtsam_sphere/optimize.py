@@ -126,6 +126,7 @@ def optimize(
     if progress:
         progress(f"{label}iteration   0  cost {cost:.6e}")
     status = "max-iterations"
+    best_cost, best_values = cost, initial
     for it in range(1, options.max_iterations + 1):
         try:
             opt.iterate()
@@ -136,9 +137,13 @@ def optimize(
         history.append({"iteration": it, "cost": new_cost, "seconds": time.perf_counter() - t0})
         if progress:
             progress(f"{label}iteration {it:3d}  cost {new_cost:.6e}")
-        if not np.isfinite(new_cost):
-            status = "stalled: cost is not finite"
+        if not np.isfinite(new_cost) or new_cost > 1e3 * max(best_cost, 1e-300):
+            status = "diverged: cost is not finite" if not np.isfinite(new_cost) else (
+                f"diverged: cost grew from {best_cost:.3e} to {new_cost:.3e}"
+            )
             break
+        if new_cost <= best_cost:
+            best_cost, best_values = new_cost, opt.values()
         decrease = cost - new_cost
         if (
             kind is OptimizerKind.LM
@@ -154,7 +159,9 @@ def optimize(
             status = "stalled: dogleg could not decrease the cost"
             break
         cost = new_cost
-    result.values = opt.values()
+    # the best state seen (LM never accepts an increase; dogleg and a diverging
+    # system can end above it)
+    result.values = opt.values() if opt.error() <= best_cost else gtsam.Values(best_values)
     result.converged = status == "converged"
     result.status = status
     return result

@@ -78,10 +78,27 @@ def test_huber_resists_five_percent_blunders():
     assert found > 0.95, found
 
 
+def test_ten_percent_blunders_are_listed_with_their_cause():
+    """Issue 6: 10% mislabelled targets and gross offsets: found, classified, harmless."""
+    _, _, clean = _run(200.0)
+    sim, calib, rep = _run(200.0, blunder_rate=0.10)
+    assert rep.rmse_3d <= 1.25 * clean.rmse_3d, (rep.rmse_3d, clean.rmse_3d)
+    listed = {(o["image"], o["target"]): o for o in calib.extra["outliers"]}
+    blunders = sim.truth["blunders"]
+    found = [b for b in blunders if (b["image"], b["target"]) in listed]
+    assert len(found) >= 0.95 * len(blunders), (len(found), len(blunders))
+    mislabels = [b for b in found if b["kind"] == "mislabel"]
+    named = [b for b in mislabels if listed[(b["image"], b["target"])]["cause"] == "mislabelled"]
+    assert len(named) >= 0.9 * len(mislabels), (len(named), len(mislabels))
+    for o in calib.extra["outliers"]:
+        assert o["residual_norm_px"] > 5 * calib.statistics["sigma_px"]
+
+
 def test_l2_is_hurt_by_blunders_more_than_huber():
     sim = _sim(200.0, 0.05)
     ids, xyz = checkpoints_of(sim)
-    l2 = calibrate(parse_dataset(sim.dataset), CalibrationOptions(model="sphere", loss="l2", covariance=False))
+    options = CalibrationOptions(model="sphere", loss="l2", covariance=False)
+    l2 = calibrate(parse_dataset(sim.dataset), options)
     _, _, huber = _run(200.0, blunder_rate=0.05)
     assert evaluate_calibration(l2, ids, xyz).rmse_3d > 2 * huber.rmse_3d
 

@@ -117,3 +117,23 @@ def test_real_data_calibrates_with_every_corner(name, tmp_path):
     stats = json.loads(out.read_text())["statistics"]
     assert stats["n_observations"] == n_input and stats["n_rejected"] == 0
     assert stats["n_images_skipped"] == 0
+
+
+def test_ctrl_c_leaves_the_previous_file_and_says_so(small_room, tmp_path, capsys, monkeypatch):
+    """Issue 6: an interrupted run writes nothing and names the last good state."""
+    import gtsam_sphere.calibrate as calibrate_module
+
+    _, paths = small_room
+    out = tmp_path / "c.json"
+    out.write_text('{"previous": true}')
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(calibrate_module, "optimize", interrupted)
+    rc = main(["calibrate", str(paths["dataset"]), "-o", str(out), "--quiet"])
+    assert rc == 130
+    assert out.read_text() == '{"previous": true}'
+    err = capsys.readouterr().err
+    assert "interrupted" in err and "previous" in err and str(out) in err
+    assert [p.name for p in tmp_path.iterdir()] == ["c.json"]  # no temporary left behind
