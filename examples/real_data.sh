@@ -5,8 +5,8 @@ DATA=${DATA:-../shared/data}
 OUT=${1:-real_data}
 [ -d "$DATA" ] || { echo "no real data at $DATA: see ../shared/data/README.md" >&2; exit 0; }
 for d in opencv_fisheye_left ov_plane_train; do
-  for model in sphere brown brown+knn; do
+  for model in sphere brown brown+knn radial radial+knn; do
     gtsam-sphere calibrate "$DATA/$d.dataset.json" -o "$OUT/$d.$model.json" --model "$model" --quiet
   done
 done
-gtsam-sphere report "$OUT/ov_plane_train.brown+knn.json" -o "$OUT/report_ov_plane"
+gtsam-sphere report "$OUT/ov_plane_train.radial+knn.json" -o "$OUT/report_ov_plane"

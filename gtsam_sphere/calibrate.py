@@ -757,10 +757,16 @@ def _result(dataset, problem, adj, correction, history, options, n_input_images)
     pc = np.einsum("nij,nj->ni", R[dataset.obs_image], xyz[dataset.obs_target])
     pc += t[dataset.obs_image]
     inc = incidence_deg(pc)
-    res = adj.residuals_px
+    # the adjustment's residuals live in corrected coordinates; statistics and files
+    # report raw pixels (OpenCV's definition); sigma, weights and outliers stay in the
+    # adjustment's own coordinates
+    res_model = adj.residuals_px
+    res = camera.pixel_residuals(dataset.uv_px, res_model)
+    res = np.where(np.isfinite(res), res, res_model)
+    r_model = np.linalg.norm(res_model, axis=1)
     r_norm = np.linalg.norm(res, axis=1)
     sigma = adj.sigma_px
-    whitened2 = (r_norm / sigma) ** 2
+    whitened2 = (r_model / sigma) ** 2
     n_obs = dataset.n_observations
     n_priors = int(
         np.sum(
@@ -769,14 +775,15 @@ def _result(dataset, problem, adj, correction, history, options, n_input_images)
         )
     )
     redundancy = 2 * n_obs + 3 * n_priors + problem.n_datum_constraints() - problem.n_unknowns()
-    outlier = r_norm > 5.0 * sigma
+    outlier = r_model > 5.0 * sigma
     # beyond the loss threshold: Huber's weight < 1 there; Cauchy's weight < 1/2
-    down = np.flatnonzero(r_norm > problem.noise.loss_threshold * sigma)
-    down = down[np.argsort(-r_norm[down])]
+    down = np.flatnonzero(r_model > problem.noise.loss_threshold * sigma)
+    down = down[np.argsort(-r_model[down])]
     n_rejected = dataset.n_input_observations - n_obs
     statistics = {
         "rms_px": float(np.sqrt(np.mean(r_norm**2))),
         "rms_px_without_outliers": float(np.sqrt(np.mean(r_norm[~outlier] ** 2))),
+        "rms_px_corrected": float(np.sqrt(np.mean(r_model**2))),
         "n_observations": int(n_obs),
         "n_rejected": int(n_rejected),
         "n_images": len(dataset.image_ids),

@@ -417,6 +417,38 @@ class SphereCamera:
         uv = check_uv(uv_px)
         return uv - self.principal_point_px - self.distortion_px(uv)
 
+    def pixel_residuals(self, uv_px: np.ndarray, ideal_residuals_px: np.ndarray) -> np.ndarray:
+        """Residuals in raw pixels from residuals in corrected (ideal) coordinates.
+
+        The adjustment's residual ``e = ideal_from_pixels(uv) - ideal(P)`` lives
+        in corrected coordinates; OpenCV-style statistics need ``uv - project(P)``.
+        To first order ``uv - project(P) = (I - d brown / d uv)^-1 e`` (the
+        learned field's gradient, well below 1 px/px, is neglected), which is
+        also what a strongly compressing Brown model at the rim amplifies.
+
+        Parameters
+        ----------
+        uv_px : ndarray, shape (N, 2)
+            Raw measurements.
+        ideal_residuals_px : ndarray, shape (N, 2)
+
+        Returns
+        -------
+        residuals_px : ndarray, shape (N, 2)
+        """
+        uv = check_uv(uv_px)
+        e = check_uv(ideal_residuals_px, "ideal_residuals_px")
+        if not self.brown:
+            return e.copy()
+        _, J, _ = brown_distortion(
+            uv - self.principal_point_px, self.brown, self.brown_scale_px, jacobians=True
+        )
+        A = np.eye(2)[None] - J
+        ok = np.abs(np.linalg.det(A)) > 1e-12
+        out = np.full_like(e, np.nan)
+        out[ok] = np.linalg.solve(A[ok], e[ok][..., None])[..., 0]
+        return out
+
     def ideal_from_points(self, points_cam: np.ndarray, jacobians: bool = False):
         """Ideal image coordinates (px, relative to the principal point) of camera-frame points.
 

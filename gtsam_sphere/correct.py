@@ -89,6 +89,33 @@ class KNNCorrection(RegressorMixin, BaseEstimator):
             return np.zeros((0, 2))
         return self.regressor_.predict(X)
 
+    def predict_without_self(self) -> np.ndarray:
+        """Leave-one-out corrections at the training pixels, (N, 2) px.
+
+        Each training point's prediction from its ``k`` nearest *other*
+        training points. With ``weights="distance"`` a point's own value
+        would otherwise dominate its prediction (zero distance), and with
+        ``"uniform"`` it would leak in with weight ``1/k``: the adjustment
+        would then fit its own noise and the in-sample statistics would be
+        optimistic.
+        """
+        X, y = self.uv_px_, self.corrections_px_
+        n = len(X)
+        n_q = min(self.n_neighbors_ + 1, n)
+        dist, ind = self.regressor_.kneighbors(X, n_neighbors=n_q)
+        is_self = ind == np.arange(n)[:, None]
+        drop = np.where(is_self.any(1), is_self.argmax(1), n_q - 1)
+        keep = np.ones_like(ind, bool)
+        keep[np.arange(n), drop] = False
+        ind = ind[keep].reshape(n, n_q - 1)
+        dist = dist[keep].reshape(n, n_q - 1)
+        if self.weights_ == "uniform":
+            return y[ind].mean(axis=1)
+        exact = dist == 0
+        with np.errstate(divide="ignore"):
+            w = np.where(exact.any(1, keepdims=True), exact.astype(float), 1.0 / dist)
+        return (w[..., None] * y[ind]).sum(1) / w.sum(1)[:, None]
+
     def to_dict(self) -> dict:
         """JSON form stored in ``calibration@1`` (``camera.correction``)."""
         return {
@@ -156,7 +183,9 @@ def grey_box_loop(problem, adj, optimizer, options, say: Callable[[str], None]):
         target = problem.corrections_px + adj.residuals_px
         train = adj.weights >= 0.5
         model = KNNCorrection(random_state=options.seed).fit(problem.uv_px[train], target[train])
-        problem.corrections_px = model.predict(problem.uv_px)
+        corrections = model.predict(problem.uv_px)
+        corrections[train] = model.predict_without_self()  # no observation corrects itself
+        problem.corrections_px = corrections
         # the first (least-squares) stage leaves out the previous round's outliers
         consistent = np.linalg.norm(adj.residuals_px, axis=1) < 5.0 * adj.sigma_px
         adj = adjust(

@@ -40,6 +40,26 @@ an intrinsic calibration with one free pose per image (the relabelled corners ar
 the board seen with a pose rotated by 180 degrees about its normal), but it breaks
 any method that assumes one board pose shared by several images (e.g. a static
 board seen by a moving rig). Use a ChArUco board or an asymmetric chessboard then.
+
+Periphery recovery (``gtsam-sphere detect ... --recover`` or ``--recover-with CALIB``)
+----------------------------------------------------------------------------------------
+The detector misses what a fisheye shows worst: ChArUco corners whose markers are too
+distorted to decode, and whole chessboards (``findChessboardCornersSB`` is
+all-or-nothing) that are partly out of view or strongly foreshortened.
+:func:`recover_dataset` closes the loop: calibrate the detections (``--recover``,
+model ``--recover-model``, default ``radial``) or take a calibration
+(``--recover-with``); resect each image with the calibration fixed
+(:mod:`gtsam_sphere.resect`) and project every board corner; refine each prediction
+locally (``cv2.cornerSubPix`` in a window scaled to the predicted square, then the
+saddle fit) and keep it only if it is a chessboard saddle within
+``min(3 px, 0.3 square)`` of its prediction; for a chessboard image with no detection,
+place the largest partial grid found (``CALIB_CB_LARGER``) on the board, refusing grids
+whose corners are not all saddles or do not fit the calibration within 1.5 px, and
+complete it the same way; recalibrate and predict again (``--recover-rounds``); drop
+recovered corners the final recalibration puts past 5 sigma. Recovered observations
+carry ``"recovered": true`` and the summary lists the corners added per image. A partial
+grid's ids may be off by whole squares or a board symmetry when the image cannot tell
+(the limitation above: harmless for intrinsic calibration).
 """
 
 from __future__ import annotations
@@ -57,12 +77,16 @@ import numpy as np
 __all__ = [
     "BoardSpec",
     "DetectionReport",
+    "RecoveryReport",
     "add_cli_arguments",
     "detect_image",
     "detect_images",
+    "predict_and_refine",
     "read_markers_csv",
+    "recover_dataset",
     "refine_predicted_corners",
     "render_board_image",
+    "rescue_partial_chessboard",
     "run_cli",
 ]
 
@@ -390,7 +414,6 @@ def _detect_chessboard(gray: np.ndarray, board: BoardSpec, attempts: int) -> dic
                 corners = np.asarray(c, dtype=np.float64).reshape(-1, 2)
                 break
         if corners is not None:
-            corners = _saddle_refine(gray, corners)
             break
     else:
         flags = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
@@ -398,12 +421,69 @@ def _detect_chessboard(gray: np.ndarray, board: BoardSpec, attempts: int) -> dic
         if ok and c is not None:
             c = np.asarray(c, dtype=np.float64).reshape(board.rows, board.cols, 2)
             half = int(np.clip(0.3 * _min_spacing(c), 2, 11))
-            corners = _saddle_refine(gray, _subpix(gray, c.reshape(-1, 2), half))
+            corners = _subpix(gray, c.reshape(-1, 2), half)
     if corners is None or len(corners) != board.cols * board.rows:
         return {}
-    grid = _orient_chessboard(gray, corners.reshape(board.rows, board.cols, 2))
-    flat = grid.reshape(-1, 2)
-    return {f"C{i:03d}": flat[i].copy() for i in range(len(flat))}
+    corners, good = _refine_grid_corners(gray, corners.reshape(board.rows, board.cols, 2))
+    # orient with every corner (the grid must be complete), then leave out the failed ones
+    order = np.arange(board.rows * board.cols, dtype=float).reshape(board.rows, board.cols)
+    both = np.concatenate([corners, order[..., None]], axis=2)
+    grid = _orient_chessboard(gray, both[..., :2])
+    if not np.array_equal(grid, both[..., :2]):
+        for cand in _grid_symmetries(both):
+            if np.array_equal(cand[..., :2], grid):
+                both = cand
+                break
+    flat = both.reshape(-1, 3)
+    good_flat = good.ravel()[flat[:, 2].astype(int)]
+    return {f"C{i:03d}": flat[i, :2].copy() for i in range(len(flat)) if good_flat[i]}
+
+
+def _grid_symmetries(grid: np.ndarray) -> list[np.ndarray]:
+    """The reorderings of a (rows, cols, k) grid that :func:`_orient_chessboard` can pick."""
+    out = []
+    for g in (grid, grid[:, ::-1]):
+        rot = np.transpose(g, (1, 0, 2))[:, ::-1]
+        out += [g, g[::-1, ::-1], rot, rot[::-1, ::-1]]
+    return out
+
+
+def _refine_grid_corners(gray: np.ndarray, grid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Refine a detected (rows, cols, 2) corner grid; flag the corners that are not saddles.
+
+    Every corner is polished by the saddle fit (:func:`_saddle_refine`). Where that fit
+    fails (the detector's estimate is not at a saddle: seen 3-4 px off on real fisheye
+    images), the corner is searched again with ``cv2.cornerSubPix`` in a window of 0.3
+    times its distance to the nearest neighbouring corner, then polished; it is flagged
+    when that fails too or :func:`saddle_score` stays below 0.5.
+
+    Returns
+    -------
+    grid : ndarray, shape (rows, cols, 2)
+        Refined positions (px).
+    good : ndarray of bool, shape (rows, cols)
+    """
+    rows, cols = grid.shape[:2]
+    pts = grid.reshape(-1, 2)
+    refined, ok = _saddle_refine(gray, pts, return_mask=True)
+    if not np.all(ok):
+        spacing = np.full((rows, cols), np.inf)
+        for axis in (0, 1):
+            d = np.linalg.norm(np.diff(grid, axis=axis), axis=2)
+            lo = [slice(None)] * 2
+            hi = [slice(None)] * 2
+            lo[axis], hi[axis] = slice(0, -1), slice(1, None)
+            spacing[tuple(lo)] = np.minimum(spacing[tuple(lo)], d)
+            spacing[tuple(hi)] = np.minimum(spacing[tuple(hi)], d)
+        spacing = spacing.ravel()
+        for i in np.flatnonzero(~ok):
+            half = int(np.clip(0.3 * spacing[i], 2, 11)) if np.isfinite(spacing[i]) else 3
+            start = _subpix(gray, pts[i : i + 1], half)
+            q, ok_i = _saddle_refine(gray, start, return_mask=True)
+            score, _ = saddle_score(gray, q, radius=max(2.0, 0.25 * spacing[i]))
+            if ok_i[0] and score[0] >= 0.5:
+                refined[i], ok[i] = q[0], True
+    return refined.reshape(rows, cols, 2), ok.reshape(rows, cols)
 
 
 def _aruco_parameters():
@@ -863,6 +943,467 @@ def write_json_atomic(obj: dict, path: str) -> None:
 
 
 # --------------------------------------------------------------------------------------
+# Periphery recovery: detect -> calibrate -> predict the missed corners -> refine -> recalibrate
+# --------------------------------------------------------------------------------------
+
+
+@dataclass
+class RecoveryReport:
+    """What :func:`recover_dataset` added.
+
+    Attributes
+    ----------
+    added : dict of str to int
+        Image id -> corners added to that image (all rounds, after the final check).
+    rescued : list of str
+        Images the detector had skipped (no full chessboard) that now have observations:
+        a partial grid found by ``cv2.findChessboardCornersSB`` (``CALIB_CB_LARGER``),
+        placed on the board with the calibration, plus the recovered corners.
+    dropped : int
+        Recovered corners removed again because the recalibration found them past
+        5 sigma.
+    rounds : list of dict
+        Per round: ``{"round", "model", "rms_px", "n_observations", "added"}`` of the
+        calibration that made the predictions (round 0 with the input detections), and
+        a last entry ``"final"`` for the recalibration with every recovered corner.
+    failures : dict of str to str
+        Image id -> why no corner could be predicted (resection failed, ...).
+    """
+
+    added: dict[str, int] = field(default_factory=dict)
+    rescued: list[str] = field(default_factory=list)
+    dropped: int = 0
+    rounds: list[dict] = field(default_factory=list)
+    failures: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def total(self) -> int:
+        """Corners added over all images."""
+        return sum(self.added.values())
+
+    def summary(self) -> str:
+        """Human-readable multi-line summary."""
+        lines = [
+            f"periphery recovery: {self.total} corners added in "
+            f"{sum(1 for n in self.added.values() if n)} images "
+            f"({len(self.rescued)} images rescued from a partial board), "
+            f"{self.dropped} dropped by the recalibration"
+        ]
+        for r in self.rounds:
+            lines.append(
+                f"  calibration {r['round']}: {r['model']}, {r['n_observations']} corners, "
+                f"RMS {r['rms_px']:.4f} px, max incidence {r['max_incidence_deg']:.1f} deg"
+            )
+        for image_id, n in self.added.items():
+            if n:
+                tag = " (rescued)" if image_id in self.rescued else ""
+                lines.append(f"  {image_id}: +{n} corners{tag}")
+        for image_id, why in self.failures.items():
+            lines.append(f"  {image_id}: no prediction ({why})")
+        return "\n".join(lines)
+
+
+def _board_neighbour_spacing(
+    camera, R: np.ndarray, t: np.ndarray, xyz: np.ndarray, step_m: float
+) -> np.ndarray:
+    """Predicted distance (px) from each board point (N, 3) to its nearest grid neighbour."""
+    offsets = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0]], float) * step_m
+    centre = camera.project(xyz @ R.T + t)
+    dist = np.full(len(xyz), np.inf)
+    for d in offsets:
+        q = camera.project((xyz + d) @ R.T + t)
+        dist = np.minimum(dist, np.linalg.norm(q - centre, axis=1))
+    return dist
+
+
+def predict_and_refine(
+    gray: np.ndarray,
+    detected: dict[str, np.ndarray],
+    board: BoardSpec,
+    camera,
+    *,
+    rng: np.random.Generator | None = None,
+    max_incidence_deg: float = 180.0,
+    max_offset_px: float = 3.0,
+    min_score: float = 0.5,
+    min_contrast: float = 8.0,
+    strict: bool = False,
+) -> tuple[dict[str, np.ndarray], str]:
+    """Recover the board corners of one image that the detector missed.
+
+    The pose is resected from the detected corners with the calibration fixed
+    (:func:`gtsam_sphere.resect.resect`); every other corner of the board is projected
+    with ``camera.project`` and refined locally: ``cv2.cornerSubPix`` in a window scaled to
+    the predicted local square size, then the detector's saddle fit. A corner is kept
+    when the refined point is a chessboard saddle (:func:`saddle_score`, ring contrast),
+    lies within ``min(max_offset_px, 0.3 * local spacing)`` of the prediction, and is not
+    within half a spacing of another corner.
+
+    Parameters
+    ----------
+    gray : ndarray, shape (H, W)
+        Grey image.
+    detected : dict of str to ndarray, shape (2,)
+        Target id -> detected ``(u, v)`` px (at least 4).
+    board : BoardSpec
+        Chessboard or ChArUco board (its corners are the candidates).
+    camera : SphereCamera
+        Calibrated camera (``project``, ``unproject``, ``ideal_from_points``).
+    rng : numpy.random.Generator, optional
+        RANSAC samples of the resection.
+    max_incidence_deg : float
+        Corners predicted past this incidence angle (camera frame, degrees) are not
+        tried: the calibration does not extrapolate far beyond the angles it saw.
+    max_offset_px : float
+        Largest distance (px) between a prediction and its refined corner.
+    min_score, min_contrast : float
+        Saddle test of :func:`refine_predicted_corners`.
+    strict : bool
+        Refuse (status not ``"ok"``) when any detected corner is more than
+        ``max_offset_px / 2`` from its reprojection with the resected pose: used for
+        partial grids, whose placement on the board is a hypothesis.
+
+    Returns
+    -------
+    added : dict of str to ndarray, shape (2,)
+        Recovered target id -> refined ``(u, v)`` px.
+    status : str
+        ``"ok"`` or why nothing could be predicted.
+    """
+    from .resect import resect
+
+    points = board.object_points_m()
+    ids = [k for k in detected if k in points]
+    if len(ids) < 4:
+        return {}, f"only {len(ids)} detected board corners"
+    uv = np.array([detected[k] for k in ids], float)
+    xyz = np.array([points[k] for k in ids], float)
+    res = resect(camera, uv, xyz, rng if rng is not None else np.random.default_rng(0))
+    if not res.success:
+        return {}, f"resection failed: {res.status}"
+    worst = float(np.nanmax(np.linalg.norm(res.residuals_px, axis=1)))
+    if strict and not worst <= 0.5 * max_offset_px:
+        return {}, f"detected corners do not fit the calibration ({worst:.1f} px)"
+    missing = [k for k in points if k not in detected]
+    if not missing:
+        return {}, "ok"
+    g = _to_gray(gray)
+    h, w = g.shape
+    mxyz = np.array([points[k] for k in missing], float)
+    p = mxyz @ res.R.T + res.t
+    inc = np.degrees(np.arctan2(np.hypot(p[:, 0], p[:, 1]), p[:, 2]))
+    pred = camera.project(p)
+    spacing = _board_neighbour_spacing(camera, res.R, res.t, mxyz, board.square_m)
+    ok = (
+        np.all(np.isfinite(pred), axis=1)
+        & (inc <= max_incidence_deg)
+        & (spacing >= 6.0)  # squares below ~6 px cannot be refined reliably
+        & (pred[:, 0] >= 0)
+        & (pred[:, 0] <= w - 1)
+        & (pred[:, 1] >= 0)
+        & (pred[:, 1] <= h - 1)
+    )
+    added: dict[str, np.ndarray] = {}
+    windows = np.clip(2 * np.round(0.35 * spacing).astype(int) + 1, 5, 21)
+    for win in np.unique(windows[ok]):
+        sel = np.flatnonzero(ok & (windows == win))
+        found = refine_predicted_corners(
+            g,
+            {missing[i]: pred[i] for i in sel},
+            window_px=int(win),
+            min_score=min_score,
+            min_contrast=min_contrast,
+        )
+        if not found:
+            continue
+        keys = list(found)
+        pts, good = _saddle_refine(g, np.array([found[k] for k in keys]), return_mask=True)
+        index = {missing[i]: i for i in sel}
+        for k, q, gd in zip(keys, pts, good):
+            i = index[k]
+            if gd and np.linalg.norm(q - pred[i]) <= min(max_offset_px, 0.3 * spacing[i]):
+                added[k] = q
+    if added:
+        # two corners snapping to one image point: keep neither
+        keys = list(added)
+        allpts = np.array([added[k] for k in keys] + [detected[k] for k in ids])
+        sp = spacing[[missing.index(k) for k in keys]]
+        d = np.linalg.norm(allpts[: len(keys), None] - allpts[None], axis=2)
+        d[np.arange(len(keys)), np.arange(len(keys))] = np.inf
+        clash = np.min(d, axis=1) < 0.5 * sp
+        added = {k: added[k] for k, c in zip(keys, clash) if not c}
+    return added, "ok"
+
+
+def _partial_chessboard_candidates(gray: np.ndarray, board: BoardSpec) -> list[dict]:
+    """Partial chessboard grids, placed on the board in every admissible way.
+
+    ``cv2.findChessboardCornersSB`` with ``CALIB_CB_LARGER`` finds the largest regular
+    grid of at least 3x3 inner corners. Its position on the board is ambiguous (a shift
+    by whole squares or a rotation is the same image content): every placement that fits
+    the board and agrees with the square colours is returned, as target id -> ``(u, v)``.
+    """
+    flags = cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY | cv2.CALIB_CB_LARGER
+    g = _to_gray(gray)
+    try:
+        cv2.setRNGSeed(0)
+        ok, corners, meta = cv2.findChessboardCornersSBWithMeta(g, (3, 3), flags=flags)
+    except cv2.error:
+        return []
+    if not ok or corners is None or meta is None:
+        return []
+    rows, cols = meta.shape[:2]
+    if rows * cols != len(corners):
+        return []
+    grid = np.asarray(corners, dtype=np.float64).reshape(rows, cols, 2)
+    grid, good = _refine_grid_corners(g, grid)
+    if not np.all(good):  # a grid with corners off any saddle is not trusted
+        return []
+    ex = grid[:, -1].mean(axis=0) - grid[:, 0].mean(axis=0)
+    ey = grid[-1].mean(axis=0) - grid[0].mean(axis=0)
+    if ex[0] * ey[1] - ex[1] * ey[0] < 0:  # right-handed, as _orient_chessboard
+        grid = grid[:, ::-1]
+    rot = np.transpose(grid, (1, 0, 2))[:, ::-1]
+    candidates = []
+    for o in (grid, grid[::-1, ::-1], rot, rot[::-1, ::-1]):
+        a, b = o.shape[:2]
+        if a > board.rows or b > board.cols or a < 2 or b < 3:
+            continue
+        # is the square enclosed by o[0,0], o[0,1], o[1,0], o[1,1] dark?
+        c_in = o[:2, :2].reshape(-1, 2).mean(axis=0)
+        c_nb = o[:2, 1:3].reshape(-1, 2).mean(axis=0)
+        first_dark = float(np.diff(_sample(g, np.array([c_in, c_nb])))[0]) > 0
+        for dr in range(board.rows - a + 1):
+            for dc in range(board.cols - b + 1):
+                # the square right-below inner corner (r, c) is dark when r + c is even
+                if ((dr + dc) % 2 == 0) != first_dark:
+                    continue
+                cand = {}
+                for i in range(a):
+                    for j in range(b):
+                        cand[f"C{(dr + i) * board.cols + dc + j:03d}"] = o[i, j].copy()
+                candidates.append(cand)
+    return candidates
+
+
+def rescue_partial_chessboard(
+    gray: np.ndarray, board: BoardSpec, camera, **kwargs
+) -> dict[str, np.ndarray]:
+    """Corners of a chessboard only partly in view, with ids from the calibration.
+
+    Each placement of the partial grid (:func:`_partial_chessboard_candidates`) is
+    completed by :func:`predict_and_refine`; the placement that explains most corners wins
+    (ties: the first). A placement that differs from the truth by whole squares or a
+    board symmetry gives the same image content: with one pose per image, as in an
+    intrinsic calibration, that is harmless (see the module docstring on symmetric
+    boards). Returns target id -> ``(u, v)`` px, empty when no grid is found.
+    """
+    best: dict[str, np.ndarray] = {}
+    for cand in _partial_chessboard_candidates(gray, board):
+        added, status = predict_and_refine(gray, cand, board, camera, strict=True, **kwargs)
+        if status != "ok":
+            continue
+        if len(cand) + len(added) > len(best):
+            best = {**cand, **added}
+    n = board.rows * board.cols
+    if len(best) == n:  # the whole board: ids by the detector's ordering rule
+        grid = np.array([best[f"C{i:03d}"] for i in range(n)]).reshape(board.rows, board.cols, 2)
+        flat = _orient_chessboard(_to_gray(gray), grid).reshape(-1, 2)
+        best = {f"C{i:03d}": flat[i].copy() for i in range(n)}
+    return best
+
+
+def recover_dataset(
+    dataset: dict,
+    paths: list[str],
+    board: BoardSpec,
+    *,
+    model: str = "radial",
+    calibration=None,
+    rounds: int = 2,
+    max_extrapolation_deg: float = 10.0,
+    max_offset_px: float = 3.0,
+    seed: int = 0,
+    progress: Callable[[str], None] | None = None,
+) -> tuple[dict, RecoveryReport]:
+    """Add the board corners the detector missed, predicted by a calibration.
+
+    The loop: calibrate the detections (or start from ``calibration``) -> for every
+    image, resect its pose with the calibration fixed and predict the board's other
+    corners (:func:`predict_and_refine`); for a chessboard image the detector skipped,
+    place a partial grid (:func:`rescue_partial_chessboard`) -> recalibrate with the
+    added corners and predict again (``rounds`` times) -> a final recalibration drops
+    recovered corners past 5 sigma. Added observations carry ``"recovered": true``.
+
+    Parameters
+    ----------
+    dataset : dict
+        ``dataset@1`` from :func:`detect_images` of ``paths`` (board targets, board frame).
+    paths : list of str
+        The image files, in the order given to :func:`detect_images`.
+    board : BoardSpec
+        Chessboard or ChArUco board.
+    model : str
+        Model of the internal calibrations (``gtsam_sphere.camera.Model``); the
+        default ``radial`` extrapolates smoothly towards the periphery.
+    calibration : Calibration, optional
+        Use its camera for the first predictions instead of calibrating the detections.
+    rounds : int
+        Prediction rounds (each after a recalibration).
+    max_extrapolation_deg : float
+        Corners are predicted up to this many degrees past the largest incidence angle
+        the calibration was estimated from.
+    max_offset_px : float
+        Largest distance between a prediction and the refined corner (px).
+    seed : int
+        Seed of the calibrations and resections.
+    progress : callable(str), optional
+        Receives progress lines.
+
+    Returns
+    -------
+    dataset : dict
+        A new ``dataset@1`` document with the recovered observations and targets.
+    report : RecoveryReport
+    """
+    from .calibrate import CalibrationOptions, calibrate
+    from .dataset import parse_dataset
+
+    if board.kind not in ("chessboard", "charuco"):
+        raise ValueError(f"corner recovery needs a chessboard or ChArUco board, not {board.kind!r}")
+    say = progress or (lambda _line: None)
+    points = board.object_points_m()
+    size = (int(dataset["camera"]["width"]), int(dataset["camera"]["height"]))
+    ids = _image_ids([str(p) for p in paths])
+    path_of = dict(zip(ids, [str(p) for p in paths]))
+    obs = {
+        im["id"]: {o["target"]: np.asarray(o["uv"], float) for o in im["observations"]}
+        for im in dataset["images"]
+    }
+    recovered: dict[str, set[str]] = {i: set() for i in ids}
+    report = RecoveryReport()
+    opts = CalibrationOptions(model=model, seed=seed, covariance=False)
+    rng = np.random.default_rng(seed)
+
+    def document() -> dict:
+        images, used = [], set()
+        for image_id in ids:
+            if image_id not in obs or not obs[image_id]:
+                continue
+            rows = []
+            for key in sorted(obs[image_id]):
+                row = {"target": key, "uv": [float(x) for x in obs[image_id][key]]}
+                if key in recovered[image_id]:
+                    row["recovered"] = True
+                rows.append(row)
+            used.update(obs[image_id])
+            images.append({"id": image_id, "observations": rows})
+        doc = dict(dataset)
+        doc["images"] = images
+        doc["targets"] = [
+            {"id": k, "xyz": [float(x) for x in points[k]], "sigma": 0}
+            for k in sorted(used)
+            if k in points
+        ]
+        return doc
+
+    def run_calibration(label):
+        calib = calibrate(parse_dataset(document(), "<recovery>"), opts)
+        s = calib.statistics
+        report.rounds.append(
+            {
+                "round": label,
+                "model": str(model),
+                "rms_px": float(s["rms_px"]),
+                "n_observations": int(s["n_observations"]),
+                "max_incidence_deg": float(s["max_incidence_deg"]),
+            }
+        )
+        say(
+            f"calibration {label}: {s['n_observations']} corners, RMS {s['rms_px']:.4f} px, "
+            f"max incidence {s['max_incidence_deg']:.1f} deg"
+        )
+        return calib
+
+    calib = calibration
+    if calib is None:
+        calib = run_calibration(0)
+    else:
+        report.rounds.append(
+            {
+                "round": "given",
+                "model": str(calib.model),
+                "rms_px": float(calib.statistics.get("rms_px", float("nan"))),
+                "n_observations": int(calib.statistics.get("n_observations", 0)),
+                "max_incidence_deg": float(calib.statistics.get("max_incidence_deg", 180.0)),
+            }
+        )
+    for rnd in range(1, max(1, int(rounds)) + 1):
+        max_inc = float(calib.statistics.get("max_incidence_deg", 170.0)) + max_extrapolation_deg
+        kwargs = {
+            "rng": rng,
+            "max_incidence_deg": min(max_inc, 180.0),
+            "max_offset_px": max_offset_px,
+        }
+        n_round = 0
+        for image_id in ids:
+            gray = cv2.imread(path_of[image_id], cv2.IMREAD_GRAYSCALE)
+            if gray is None or gray.shape != (size[1], size[0]):
+                continue  # unreadable, or another camera (detect_images skipped it)
+            have = obs.get(image_id, {})
+            if len(have) >= 4:
+                added, status = predict_and_refine(gray, have, board, calib.camera, **kwargs)
+            elif board.kind == "chessboard":
+                added = rescue_partial_chessboard(gray, board, calib.camera, **kwargs)
+                status = "ok" if added else "no partial chessboard found"
+                if added:
+                    report.rescued.append(image_id)
+            else:
+                added, status = {}, f"only {len(have)} detected corners"
+            if status != "ok":
+                report.failures[image_id] = status
+                continue
+            report.failures.pop(image_id, None)
+            obs.setdefault(image_id, {}).update(added)
+            recovered[image_id].update(added)
+            n_round += len(added)
+        say(f"round {rnd}: {n_round} corners added")
+        if n_round == 0:
+            break
+        calib = run_calibration(rnd)
+    # final check: recovered corners the recalibration finds past 5 sigma are dropped
+    if any(recovered.values()):
+        o = calib.extra.get("observations", {})
+        res = np.linalg.norm(np.asarray(o.get("residual_px", []), float).reshape(-1, 2), axis=1)
+        sigma = float(calib.statistics["sigma_px"])
+        drop = 0
+        for image_id, key, r in zip(o.get("image", []), o.get("target", []), res):
+            if key in recovered.get(image_id, set()) and r > 5.0 * sigma:
+                del obs[image_id][key]
+                recovered[image_id].discard(key)
+                drop += 1
+        report.dropped = drop
+        if drop:
+            say(f"{drop} recovered corners past 5 sigma dropped")
+            run_calibration("final")
+        else:
+            report.rounds[-1] = dict(report.rounds[-1], round="final")
+    report.added = {i: len(recovered[i]) for i in ids}
+    report.rescued = [i for i in dict.fromkeys(report.rescued) if recovered[i]]
+    out = document()
+    out["source"] = dict(
+        dataset.get("source", {}),
+        recovery={
+            "model": str(model),
+            "rounds": report.rounds,
+            "added": report.total,
+            "dropped": report.dropped,
+        },
+    )
+    return out, report
+
+
+# --------------------------------------------------------------------------------------
 # CLI
 # --------------------------------------------------------------------------------------
 
@@ -890,6 +1431,34 @@ def add_cli_arguments(parser: argparse.ArgumentParser) -> None:
         "--min-points", type=int, default=1, help="skip images with fewer observations"
     )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    rec = parser.add_argument_group(
+        "periphery recovery",
+        "calibrate the detections, predict the board corners the detector missed (and "
+        "partial chessboards it skipped) with the calibration, refine them locally, keep the "
+        "real saddles near their prediction, recalibrate; added observations are marked "
+        '"recovered": true',
+    )
+    rec.add_argument(
+        "--recover", action="store_true", help="recover missed corners (calibrates internally)"
+    )
+    rec.add_argument(
+        "--recover-with",
+        metavar="CALIB.json",
+        default=None,
+        help="recover missed corners, first predictions from this calibration@1 file",
+    )
+    rec.add_argument(
+        "--recover-model",
+        default="radial",
+        help="model of the internal calibrations (default radial: smooth extrapolation)",
+    )
+    rec.add_argument("--recover-rounds", type=int, default=2, help="prediction rounds")
+    rec.add_argument(
+        "--recover-max-offset-px",
+        type=float,
+        default=3.0,
+        help="largest distance between a prediction and its refined corner (px)",
+    )
 
 
 def run_cli(args: argparse.Namespace) -> int:
@@ -906,8 +1475,35 @@ def run_cli(args: argparse.Namespace) -> int:
     except (ValueError, OSError) as exc:
         print(f"gtsam-sphere detect: error: {exc}", file=sys.stderr)
         return 2
+    recovery = None
+    if getattr(args, "recover", False) or getattr(args, "recover_with", None):
+        from .calibration import load_calibration
+        from .camera import Model
+
+        def say(line: str) -> None:
+            if not getattr(args, "no_progress", False):
+                print(f"recovery: {line}", file=sys.stderr, flush=True)
+
+        try:
+            Model(args.recover_model)
+            calib = load_calibration(args.recover_with) if args.recover_with else None
+            dataset, recovery = recover_dataset(
+                dataset,
+                list(args.images),
+                board,
+                model=args.recover_model,
+                calibration=calib,
+                rounds=args.recover_rounds,
+                max_offset_px=args.recover_max_offset_px,
+                progress=say,
+            )
+        except (ValueError, OSError) as exc:
+            print(f"gtsam-sphere detect: error: recovery: {exc}", file=sys.stderr)
+            return 2
     write_json_atomic(dataset, args.output)
     print(report.summary())
+    if recovery is not None:
+        print(recovery.summary())
     print(
         f"wrote {args.output}: {len(dataset['images'])} images, {len(dataset['targets'])} targets"
     )
