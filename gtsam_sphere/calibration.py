@@ -52,6 +52,45 @@ class Calibration:
         """Adjusted coordinates (3,) of one target."""
         return self.target_xyz[self.target_ids.index(target_id)]
 
+    def bearing(self, uv_px: np.ndarray, hemisphere=1.0) -> list:
+        """Unit rays of raw pixels as ``gtsam.Unit3``, for GTSAM's spherical-camera factors.
+
+        Measurement corrections (Brown terms, learned correction) are applied
+        (``camera.unproject``). See :mod:`gtsam_sphere.external` for the
+        factors, the angular noise and when to prefer the pixel factor.
+
+        Parameters
+        ----------
+        uv_px : array_like, shape (N, 2)
+            Raw measured pixels (OpenCV convention).
+        hemisphere : float or array_like, shape (N,)
+            "sphere" mapping only: ``+1`` front half of the image sphere
+            (incidence below 90 deg), ``-1`` back half (the mapping is
+            two-to-one past 90 deg); ignored by the "radial" mapping.
+
+        Returns
+        -------
+        list of gtsam.Unit3, length N
+            Camera frame (x right, y down, z forward).
+
+        Raises
+        ------
+        ValueError
+            If a pixel has no ray (outside the model's image).
+        """
+        import gtsam
+
+        from .external import bearings
+
+        rays = bearings(self.camera, uv_px, hemisphere)
+        bad = np.flatnonzero(~np.isfinite(rays).all(1))
+        if len(bad):
+            raise ValueError(
+                f"{len(bad)} pixels have no ray (outside the model's image), "
+                f"first indices {bad[:5].tolist()}"
+            )
+        return [gtsam.Unit3(r) for r in rays]
+
     def to_dict(self) -> dict:
         """The ``gtsam-sphere/calibration@1`` document."""
         camera = self.camera.to_dict()

@@ -403,13 +403,20 @@ class SphereCamera:
         return np.array([float(self.radial.get(t, 0.0)) for t in RADIAL_TERMS], float)
 
     def distortion_px(self, uv_px: np.ndarray) -> np.ndarray:
-        """Total measurement correction at raw pixels (N, 2): Brown + learned, px."""
+        """Total measurement correction at raw pixels (N, 2): learned + Brown, px.
+
+        As in the adjustment: the learned field at the raw pixel, then Brown
+        at the pixel it corrected, ``uv - pp - ideal = learned(uv) + brown(uv -
+        learned(uv) - pp)``.
+        """
         uv = check_uv(uv_px)
         delta = np.zeros_like(uv)
-        if self.brown:
-            delta += brown_distortion(uv - self.principal_point_px, self.brown, self.brown_scale_px)
         if self.correction is not None:
             delta += self.correction.predict(uv)
+        if self.brown:
+            delta += brown_distortion(
+                uv - delta - self.principal_point_px, self.brown, self.brown_scale_px
+            )
         return delta
 
     def ideal_from_pixels(self, uv_px: np.ndarray) -> np.ndarray:
@@ -440,8 +447,9 @@ class SphereCamera:
         e = check_uv(ideal_residuals_px, "ideal_residuals_px")
         if not self.brown:
             return e.copy()
+        corrected = uv if self.correction is None else uv - self.correction.predict(uv)
         _, J, _ = brown_distortion(
-            uv - self.principal_point_px, self.brown, self.brown_scale_px, jacobians=True
+            corrected - self.principal_point_px, self.brown, self.brown_scale_px, jacobians=True
         )
         A = np.eye(2)[None] - J
         ok = np.abs(np.linalg.det(A)) > 1e-12
@@ -503,21 +511,28 @@ class SphereCamera:
         uv = pp + ideal
         if not self.brown and self.correction is None:
             return uv
-        for _ in range(max_iterations):
-            target = ideal.copy()
-            if self.correction is not None:
-                target += self.correction.predict(np.nan_to_num(uv))
-            xbar = uv - pp
-            if self.brown:
+        # 1. the corrected pixel w: w - pp - brown(w - pp) = ideal (Newton, exact Jacobian)
+        w = uv
+        if self.brown:
+            for _ in range(max_iterations):
+                xbar = w - pp
                 delta, J, _ = brown_distortion(
                     xbar, self.brown, self.brown_scale_px, jacobians=True
                 )
-                f = xbar - delta - target
+                f = xbar - delta - ideal
                 A = np.eye(2)[None] - J
                 step = np.linalg.solve(A, f[..., None])[..., 0]
-            else:
-                step = xbar - target
-            uv = uv - step
+                w = w - step
+                if np.all(~np.isfinite(step) | (np.abs(step) < tol_px)):
+                    break
+        if self.correction is None:
+            return w
+        # 2. the raw pixel: uv - learned(uv) = w (fixed point)
+        uv = w.copy()
+        for _ in range(max_iterations):
+            new = w + self.correction.predict(np.nan_to_num(uv))
+            step = new - uv
+            uv = new
             if np.all(~np.isfinite(step) | (np.abs(step) < tol_px)):
                 break
         return uv

@@ -19,6 +19,10 @@
     90-degree incidence curve and the model's measurement correction field.
 ``residual_field.png``
     Mean residual vector per grid cell: the systematic error left.
+``uncertainty.png``
+    Projection uncertainty over the image (px) propagated from the
+    covariance of the intrinsics, plus the local term of a learned kNN
+    correction (:mod:`gtsam_sphere.uncertainty`).
 ``report.md`` and ``index.html``
     The same tables and images as a Markdown page and an HTML page.
 
@@ -53,6 +57,8 @@ PLOTS: dict[str, str] = {
     "coverage": "Image coverage: observations, principal point, 90 deg incidence curve and "
     "the model's measurement correction field.",
     "residual_field": "Mean residual vector per image cell: systematic error left by the model.",
+    "uncertainty": "Projection uncertainty: standard deviation (px) of the pixel of a fixed ray, "
+    "propagated from the covariance of the intrinsics (plus the kNN correction's local term).",
 }
 
 #: Observations with a robust weight below this are drawn as outliers.
@@ -746,6 +752,88 @@ def plot_residual_field(
     return _save(fig, path, tight=True)
 
 
+def uncertainty_of(calib: Calibration):
+    """The projection uncertainty map of ``calib`` and a note, or ``(None, why)``.
+
+    Returns
+    -------
+    umap : UncertaintyMap or None
+    note : str
+        Where the covariance came from, or why there is no map.
+    """
+    from .dataset import DatasetError
+    from .uncertainty import uncertainty_map_of
+
+    try:
+        umap = uncertainty_map_of(calib)
+    except DatasetError as exc:
+        return None, str(exc).split(": ", 1)[-1]
+    except Exception as exc:  # report, do not fail, on a camera that cannot be propagated
+        return None, f"could not be computed ({exc})"
+    return umap, umap.note
+
+
+def plot_uncertainty(
+    calib: Calibration, obs: Observations | None, umap, note: str, path: Path, label: str = ""
+) -> Path:
+    """Map of the projection uncertainty (px) over the image frame, observations on top."""
+    title = f"Projection uncertainty{label}"
+    if umap is None:
+        return _placeholder(path, title, f"no map: {note}")
+    cam = calib.camera
+    fig, ax = _subplots(figsize=(9, 9 * cam.height / max(cam.width, 1) + 1.2))
+    du = umap.u_px[1] - umap.u_px[0] if len(umap.u_px) > 1 else cam.width
+    dv = umap.v_px[1] - umap.v_px[0] if len(umap.v_px) > 1 else cam.height
+    extent = (
+        umap.u_px[0] - du / 2,
+        umap.u_px[-1] + du / 2,
+        umap.v_px[-1] + dv / 2,
+        umap.v_px[0] - dv / 2,
+    )
+    vals = umap.sigma_px
+    finite = vals[np.isfinite(vals)]
+    vmax = float(np.percentile(finite, 99)) if len(finite) else 1.0
+    im = ax.imshow(
+        np.ma.masked_invalid(vals),
+        extent=extent,
+        origin="upper",
+        cmap="viridis",
+        vmin=0.0,
+        vmax=vmax if vmax > 0 else 1.0,
+        interpolation="nearest",
+        zorder=1,
+    )
+    cb = fig.colorbar(im, ax=ax, shrink=0.7, pad=0.02)
+    cb.set_label("projection standard deviation (px)")
+    uv = obs.uv_px if obs is not None else None
+    inside = None
+    if uv is not None and len(uv) and np.all(np.isfinite(uv)):
+        ax.scatter(uv[:, 0], uv[:, 1], s=1.0, color="white", alpha=0.5, lw=0, zorder=2)
+        ax.plot([], [], ".", color="0.6", ms=5, label=f"observations ({len(uv)})")
+        inside = _observed_cells(umap, uv)
+    ax.plot(cam.xp, cam.yp, "+", color="tab:red", ms=14, mew=2.5, label="principal point")
+    _frame(ax, cam.width, cam.height)
+    summ = umap.summary()
+    sub = f"median {_fmt(summ['median_px'])} px, max {_fmt(summ['max_px'])} px over the image"
+    if inside is not None:
+        s_in = umap.summary(inside)
+        sub += f"; median {_fmt(s_in['median_px'])} px where observed"
+    ax.set_title(f"{title}\n{sub}\n{note}", fontsize=9)
+    ax.legend(loc="lower left", fontsize=8, framealpha=0.85)
+    return _save(fig, path, tight=True)
+
+
+def _observed_cells(umap, uv: np.ndarray) -> np.ndarray:
+    """Cells (R, C) of an uncertainty map holding at least one observation."""
+    du = umap.u_px[1] - umap.u_px[0] if len(umap.u_px) > 1 else np.inf
+    dv = umap.v_px[1] - umap.v_px[0] if len(umap.v_px) > 1 else np.inf
+    ci = np.clip(np.floor((uv[:, 0] - umap.u_px[0]) / du + 0.5).astype(int), 0, len(umap.u_px) - 1)
+    ri = np.clip(np.floor((uv[:, 1] - umap.v_px[0]) / dv + 0.5).astype(int), 0, len(umap.v_px) - 1)
+    mask = np.zeros(umap.sigma_px.shape, bool)
+    mask[ri, ci] = True
+    return mask
+
+
 # --------------------------------------------------------------------------- page
 
 
@@ -973,7 +1061,7 @@ def write_report(
     -------
     dict
         ``{"residuals_2d": Path, "histograms": ..., "radial": ..., "convergence": ...,
-        "coverage": ..., "residual_field": ..., "markdown": report.md,
+        "coverage": ..., "residual_field": ..., "uncertainty": ..., "markdown": report.md,
         "html": index.html}``.
 
     Raises
@@ -998,6 +1086,8 @@ def write_report(
     paths["convergence"] = plot_convergence(history, out / "convergence.png")
     paths["coverage"] = plot_coverage(calib, obs, out / "coverage.png")
     paths["residual_field"] = plot_residual_field(calib, obs, out / "residual_field.png")
+    umap, unote = uncertainty_of(calib)
+    paths["uncertainty"] = plot_uncertainty(calib, obs, umap, unote, out / "uncertainty.png")
 
     name = Path(str(source)).name if source is not None else calib.model
     title = title or f"Calibration report: {name}"
@@ -1052,9 +1142,27 @@ def write_report(
         blocks.append(table)
     else:
         blocks.append("None: every observation has full weight (or none were recorded).")
+    blocks.append((2, "Projection uncertainty"))
+    blocks.append(
+        "How to read it: each cell is the standard deviation, in pixels, of where a fixed ray "
+        "would land in the image if the intrinsics were drawn from their estimated covariance "
+        "(and, with a kNN correction, the standard error of its local average). Where it is "
+        "small next to the residual RMS the calibration pins the image down; where it grows "
+        "(usually away from the observations) the model is extrapolating."
+    )
+    if umap is not None:
+        summ = umap.summary()
+        blocks.append(
+            f"Median {_value(summ['median_px'])} px, max {_value(summ['max_px'])} px over "
+            f"{summ['n_cells']} cells; source: {umap.note}."
+        )
+    else:
+        blocks.append(f"No map: {unote}.")
+    blocks.append(_Image(paths["uncertainty"].name, PLOTS["uncertainty"]))
     blocks.append((2, "Plots"))
     for key, caption in PLOTS.items():
-        blocks.append(_Image(paths[key].name, caption))
+        if key != "uncertainty":
+            blocks.append(_Image(paths[key].name, caption))
 
     paths["markdown"] = out / "report.md"
     paths["markdown"].write_text(_markdown(blocks), encoding="utf-8")

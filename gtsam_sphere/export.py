@@ -1,0 +1,1416 @@
+"""Export a calibrated camera to standard models: OpenCV fisheye / rational, Kalibr.
+
+The calibrated camera (:class:`~gtsam_sphere.camera.SphereCamera`) is a ray
+field: every pixel of the observed region has a ray. A standard model is
+fitted to that field by Levenberg-Marquardt (numpy, analytic Jacobians),
+minimising the pixel distance between the standard model's projection of
+each ray and the pixel the calibrated camera assigns to it. What the export
+loses is reported with it (:class:`ExportResult`): the fit residual in
+pixels (RMS, 95th percentile, max) over the rays the standard model can
+represent, and the fraction of the observed region it covers.
+
+Targets (``TARGETS``)
+
+``opencv-fisheye``
+    Kannala-Brandt as ``cv2.fisheye`` uses it: ``theta = atan(r)``, ``r =
+    |(x, y)| / z``, ``theta_d = theta (1 + k1 theta^2 + k2 theta^4 + k3
+    theta^6 + k4 theta^8)``, ``u = fx theta_d x / |(x, y)| + cx`` (likewise
+    ``v``); ``K`` (3x3, no skew) and ``D = (k1, k2, k3, k4)``.
+    ``cv2.fisheye`` cannot project rays at or beyond 90 deg (``z <= 0``):
+    they are left out of the fit and counted as not covered.
+``opencv-rational``
+    Pinhole ``K`` with ``dist = (k1, k2, p1, p2, k3, k4, k5, k6)``
+    (``cv2.CALIB_RATIONAL_MODEL``), over rays below ``max_incidence_deg``
+    (80 deg by default; a pinhole image goes to infinity at 90 deg).
+``kalibr-equi``
+    Kalibr ``pinhole`` + ``equidistant``: the same model as
+    ``opencv-fisheye``, written as a camchain YAML.
+``kalibr-ds``
+    Kalibr ``ds``, the double-sphere model (Usenko et al. 2018)
+    ``intrinsics = [xi, alpha, fu, fv, pu, pv]``: ``d1 = |P|``, ``w = xi d1
+    + z``, ``d2 = |(x, y, w)|``, ``u = fu x / (alpha d2 + (1 - alpha) w) +
+    pu``; valid where ``z > -w2 d1`` (Eq. 43 of the paper), which reaches past
+    90 deg, so fields of view beyond 180 deg are representable.
+
+Every target uses OpenCV's pixel convention (``(0, 0)`` is the centre of
+the top-left pixel), as this package does; no half-pixel shift is applied.
+
+Observed region: the pixels a calibration is trustworthy at. With the
+calibration's observations (``extra["observations"]["uv_px"]``) it is their
+convex hull (``region="hull"``, the default) or the disc around the
+principal point through the farthest one (``"radius"``); without them, or
+with ``"image"``, the whole image where the camera has a ray. The region is
+sampled on a regular pixel grid (about ``n_samples`` pixels), each pixel
+unprojected to its ray (:func:`pixel_hemisphere` says which half of the
+image sphere a pixel lies on).
+
+Files: ``opencv-*`` write JSON (``format: "gtsam-sphere/export-opencv@1"``:
+``image_size = [width, height]``, ``K``, ``D`` or ``dist``, ``fit``),
+``kalibr-*`` write a camchain YAML (``cam0: camera_model, intrinsics,
+distortion_model, distortion_coeffs, resolution``) with the fit residual in
+comments. Both are written atomically.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import tempfile
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .dataset import DatasetError, write_json_atomic
+
+TARGETS: tuple[str, ...] = ("opencv-fisheye", "opencv-rational", "kalibr-equi", "kalibr-ds")
+REGIONS: tuple[str, ...] = ("hull", "radius", "image")
+EXPORT_FORMAT = "gtsam-sphere/export-opencv@1"
+#: default incidence limit (deg) of the rational (pinhole) export
+RATIONAL_MAX_INCIDENCE_DEG = 80.0
+
+# parameter names of each fitted model, in the order of the parameter vector
+_KB_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "k3", "k4")
+_RATIONAL_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
+_DS_NAMES = ("xi", "alpha", "fx", "fy", "cx", "cy")
+
+
+# --------------------------------------------------------------------------- rays of pixels
+
+
+def pixel_hemisphere(camera, uv_px: np.ndarray, step_px: float = 1.0) -> np.ndarray:
+    """Which half of the image sphere each pixel lies on: ``+1`` front, ``-1`` back.
+
+    With the sphere mapping a pixel's ideal point ``c * P[:2] / |P|`` is the
+    same for a ray at incidence ``alpha`` and ``180 - alpha``. A lens seeing
+    past 90 deg is represented by measurement corrections that fold the
+    image: beyond the fold the raw image radius keeps growing while the ideal
+    radius ``c sin(alpha)`` shrinks, so the map ``uv -> ideal`` reverses
+    orientation. A pixel is on the back half where that map's Jacobian
+    determinant (central differences, ``step_px``) is negative, on the front
+    half elsewhere (the documented default of ``unproject``). A camera with
+    a radial mapping (``camera.radial`` not ``None``) is one-to-one past
+    90 deg by itself: all ``+1``.
+
+    Parameters
+    ----------
+    camera : SphereCamera
+    uv_px : ndarray, shape (N, 2)
+        Raw pixels (OpenCV convention).
+    step_px : float
+        Finite-difference step (px).
+
+    Returns
+    -------
+    hemisphere : ndarray, shape (N,)
+        ``+1.0`` or ``-1.0``.
+    """
+    uv = np.asarray(uv_px, float).reshape(-1, 2)
+    h = np.ones(len(uv))
+    if getattr(camera, "radial", None) is not None:
+        return h
+    if not getattr(camera, "brown", None) and getattr(camera, "correction", None) is None:
+        return h
+    if len(uv) == 0:
+        return h
+    ex = np.array([step_px, 0.0])
+    ey = np.array([0.0, step_px])
+    dx = camera.ideal_from_pixels(uv + ex) - camera.ideal_from_pixels(uv - ex)
+    dy = camera.ideal_from_pixels(uv + ey) - camera.ideal_from_pixels(uv - ey)
+    det = dx[:, 0] * dy[:, 1] - dx[:, 1] * dy[:, 0]
+    h[det < 0] = -1.0
+    return h
+
+
+def pixel_rays(camera, uv_px: np.ndarray, hemisphere: np.ndarray | None = None) -> np.ndarray:
+    """Unit rays (camera frame) of raw pixels, each on its own half of the image sphere.
+
+    Parameters
+    ----------
+    camera : SphereCamera
+    uv_px : ndarray, shape (N, 2)
+        Raw pixels (OpenCV convention).
+    hemisphere : ndarray, shape (N,), optional
+        ``+1`` / ``-1`` per pixel; default :func:`pixel_hemisphere`.
+
+    Returns
+    -------
+    rays : ndarray, shape (N, 3)
+        Unit vectors, x right, y down, z forward; NaN where the camera has no
+        ray.
+    """
+    uv = np.asarray(uv_px, float).reshape(-1, 2)
+    if len(uv) == 0:
+        return np.zeros((0, 3))
+    if hemisphere is None:
+        hemisphere = pixel_hemisphere(camera, uv)
+    return np.asarray(camera.unproject(uv, hemisphere=hemisphere), float).reshape(-1, 3)
+
+
+def _ideal_of_rays(camera, rays: np.ndarray) -> np.ndarray:
+    """Ideal image points (px, relative to the principal point) of camera-frame rays (N, 3)."""
+    if hasattr(camera, "ideal_from_points"):
+        return np.asarray(camera.ideal_from_points(rays), float)
+    norm = np.linalg.norm(rays, axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return camera.c * rays[:, :2] / norm[:, None]
+
+
+def _angle_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Angle (rad) between rows of two (N, 3) arrays; NaN where either is not finite."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cross = np.linalg.norm(np.cross(a, b), axis=1)
+        return np.arctan2(cross, np.sum(a * b, axis=1))
+
+
+class RayGrid:
+    """Rays of a regular pixel grid over a camera's image, with a nearest-ray index.
+
+    Parameters
+    ----------
+    camera : SphereCamera
+    n_cols : int
+        Grid columns (rows follow the aspect ratio).
+
+    Attributes
+    ----------
+    uv_px : ndarray, shape (G, 2)
+        Grid pixels that have a ray.
+    rays : ndarray, shape (G, 3)
+        Their unit rays (:func:`pixel_rays`).
+    step_px : float
+        Grid spacing (px).
+    max_incidence_deg : float
+        Widest ray of the grid.
+    """
+
+    def __init__(self, camera, n_cols: int = 160):
+        from sklearn.neighbors import KDTree
+
+        self.step_px = max(camera.width, camera.height) / n_cols
+        gu = np.arange(-0.5 + self.step_px / 2, camera.width - 0.5, self.step_px)
+        gv = np.arange(-0.5 + self.step_px / 2, camera.height - 0.5, self.step_px)
+        grid = np.stack(np.meshgrid(gu, gv), -1).reshape(-1, 2)
+        grays = pixel_rays(camera, grid)
+        ok = np.all(np.isfinite(grays), axis=1)
+        self.uv_px, self.rays = grid[ok], grays[ok]
+        self.max_incidence_deg = (
+            float(np.max(incidence_deg(self.rays))) if len(self.rays) else math.nan
+        )
+        self._tree = KDTree(self.rays) if len(self.rays) else None
+        # a ray farther than a few grid steps from every grid ray is outside the image
+        self.max_angle_rad = 5.0 * self.step_px / max(abs(float(camera.c)), 1e-9)
+
+    def nearest(self, rays: np.ndarray) -> np.ndarray:
+        """Pixel (N, 2) of the nearest grid ray to each ray (N, 3); NaN when none is close."""
+        out = np.full((len(rays), 2), np.nan)
+        if self._tree is None or len(rays) == 0:
+            return out
+        norm = np.linalg.norm(rays, axis=1)
+        finite = np.isfinite(norm) & (norm > 0)
+        if not finite.any():
+            return out
+        unit = rays[finite] / norm[finite, None]
+        dist, idx = self._tree.query(unit, k=1)
+        chord = 2.0 * math.sin(min(self.max_angle_rad, math.pi) / 2)
+        near = dist[:, 0] <= chord
+        sub = np.full((len(unit), 2), np.nan)
+        sub[near] = self.uv_px[idx[near, 0]]
+        out[finite] = sub
+        return out
+
+
+def project_rays(
+    camera,
+    rays: np.ndarray,
+    seed_uv_px: np.ndarray | None = None,
+    tol_px: float = 0.05,
+    inside_image: bool = True,
+    grid: RayGrid | None = None,
+) -> np.ndarray:
+    """Raw pixels of camera-frame rays, NaN where the camera has no pixel for the ray.
+
+    A pixel is accepted when its own ray (:func:`pixel_rays`) comes back to
+    the input ray within ``tol_px / c`` rad (and, with ``inside_image``, it
+    lies in the image). ``camera.project`` is tried first (few iterations,
+    then more for the rays that need them). Rays still failing (behind the
+    fold of a lens seeing past 90 deg, where ``camera.project`` lands on the
+    front pre-image) are refined by Newton steps on ``ideal_from_pixels(uv) =
+    ideal(ray)`` from a seed on the right side of the fold (``seed_uv_px``,
+    else the pixel of the nearest ray of a :class:`RayGrid`), then checked
+    again. With a grid, rays wider than its widest ray by more than 2 deg
+    are not tried at all.
+
+    Parameters
+    ----------
+    camera : SphereCamera
+    rays : ndarray, shape (N, 3)
+        Camera frame (x right, y down, z forward); need not be unit.
+    seed_uv_px : ndarray, shape (N, 2), optional
+        Starting pixels for the rays ``camera.project`` gets wrong.
+    tol_px : float
+        Round-trip tolerance in pixels at the scale ``c`` (px per rad).
+    inside_image : bool
+        Also reject pixels outside ``[-0.5, width - 0.5] x [-0.5, height - 0.5]``.
+    grid : RayGrid, optional
+        Reused between calls on the same camera; built when needed.
+
+    Returns
+    -------
+    uv_px : ndarray, shape (N, 2)
+    """
+    rays = np.asarray(rays, float).reshape(-1, 3)
+    n = len(rays)
+    uv = np.full((n, 2), np.nan)
+    if n == 0:
+        return uv
+    tol_rad = tol_px / max(abs(float(camera.c)), 1e-9)
+
+    def accepted(uv_try: np.ndarray, idx: np.ndarray) -> np.ndarray:
+        ok = np.all(np.isfinite(uv_try), axis=1)
+        if inside_image:
+            ok &= (
+                (uv_try[:, 0] >= -0.5)
+                & (uv_try[:, 0] <= camera.width - 0.5)
+                & (uv_try[:, 1] >= -0.5)
+                & (uv_try[:, 1] <= camera.height - 0.5)
+            )
+        back = np.full((len(idx), 3), np.nan)
+        if ok.any():
+            back[ok] = pixel_rays(camera, uv_try[ok])
+        ang = _angle_between(back, rays[idx])
+        return ok & (ang < tol_rad)
+
+    todo = np.flatnonzero(np.all(np.isfinite(rays), axis=1) & (np.linalg.norm(rays, axis=1) > 0))
+    if seed_uv_px is None:
+        if grid is None:
+            grid = RayGrid(camera)
+        if math.isfinite(grid.max_incidence_deg):
+            todo = todo[incidence_deg(rays[todo]) <= grid.max_incidence_deg + 2.0]
+        else:
+            todo = todo[:0]
+    good = np.zeros(n, bool)
+    for iterations in (12,):
+        if len(todo) == 0:
+            break
+        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+            trial = np.asarray(
+                camera.project(rays[todo], max_iterations=iterations), float
+            ).reshape(-1, 2)
+        ok = accepted(trial, todo)
+        uv[todo[ok]] = trial[ok]
+        good[todo[ok]] = True
+        todo = todo[~ok]
+    if len(todo):
+        if seed_uv_px is not None:
+            seeds = np.asarray(seed_uv_px, float).reshape(-1, 2)[todo]
+        else:
+            seeds = grid.nearest(rays[todo])
+        has_seed = np.all(np.isfinite(seeds), axis=1)
+        todo, seeds = todo[has_seed], seeds[has_seed]
+        if len(todo):
+            refined = _newton_pixels(camera, rays[todo], seeds)
+            ok = accepted(refined, todo)
+            uv[todo[ok]] = refined[ok]
+            good[todo[ok]] = True
+    uv[~good] = np.nan
+    return uv
+
+
+def _newton_pixels(camera, rays: np.ndarray, seeds: np.ndarray, iterations: int = 30):
+    """Newton on ``ideal_from_pixels(uv) = ideal(ray)`` from ``seeds`` (finite differences).
+
+    Only the rays not yet converged (step above 1e-9 px) are iterated.
+    """
+    target = _ideal_of_rays(camera, rays)
+    uv = np.array(seeds, float)
+    h = 0.25
+    ex, ey = np.array([h, 0.0]), np.array([0.0, h])
+    limit = 0.1 * max(camera.width, camera.height)
+    active = np.flatnonzero(np.all(np.isfinite(uv), axis=1) & np.all(np.isfinite(target), axis=1))
+    for _ in range(iterations):
+        if len(active) == 0:
+            break
+        p = uv[active]
+        f = camera.ideal_from_pixels(p) - target[active]
+        jx = (camera.ideal_from_pixels(p + ex) - camera.ideal_from_pixels(p - ex)) / (2 * h)
+        jy = (camera.ideal_from_pixels(p + ey) - camera.ideal_from_pixels(p - ey)) / (2 * h)
+        det = jx[:, 0] * jy[:, 1] - jy[:, 0] * jx[:, 1]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            step = np.column_stack(
+                [
+                    (jy[:, 1] * f[:, 0] - jy[:, 0] * f[:, 1]) / det,
+                    (-jx[:, 1] * f[:, 0] + jx[:, 0] * f[:, 1]) / det,
+                ]
+            )
+            norm = np.linalg.norm(step, axis=1)
+            # damp steps that would jump across the image (a flat Jacobian near the fold)
+            step *= np.where(norm > limit, limit / norm, 1.0)[:, None]
+        uv[active] = p - np.nan_to_num(step)
+        active = active[np.isfinite(norm) & (norm >= 1e-9)]
+    return uv
+
+
+# --------------------------------------------------------------------------- observed region
+
+
+@dataclass
+class RegionSample:
+    """Pixels sampled over a camera's observed region and their rays.
+
+    Attributes
+    ----------
+    uv_px : ndarray, shape (N, 2)
+        Raw pixels on a regular grid (OpenCV convention).
+    rays : ndarray, shape (N, 3)
+        Unit rays of those pixels, camera frame (x right, y down, z forward).
+    step_px : float
+        Grid spacing (px); each sample stands for ``step_px**2`` px of image.
+    description : str
+        What the region is, for messages.
+    """
+
+    uv_px: np.ndarray
+    rays: np.ndarray
+    step_px: float
+    description: str
+
+    def __len__(self) -> int:
+        return len(self.uv_px)
+
+    @property
+    def incidence_deg(self) -> np.ndarray:
+        """Incidence angle (deg) of each sample's ray, shape (N,)."""
+        return incidence_deg(self.rays)
+
+
+def incidence_deg(rays: np.ndarray) -> np.ndarray:
+    """Incidence angle ``atan2(hypot(x, y), z)`` in degrees of rays (N, 3), shape (N,)."""
+    rays = np.asarray(rays, float).reshape(-1, 3)
+    return np.degrees(np.arctan2(np.hypot(rays[:, 0], rays[:, 1]), rays[:, 2]))
+
+
+def _inside_convex(points: np.ndarray, hull: np.ndarray, tol: float = 1e-9) -> np.ndarray:
+    """Points (N, 2) inside or on a convex polygon ``hull`` (V, 2) in either orientation."""
+    if len(hull) < 3:
+        return np.zeros(len(points), bool)
+    a = hull
+    e = np.roll(hull, -1, axis=0) - hull
+    inside = np.empty(len(points), bool)
+    for s in range(0, len(points), 8192):
+        p = points[s : s + 8192]
+        cross = e[None, :, 0] * (p[:, None, 1] - a[None, :, 1]) - e[None, :, 1] * (
+            p[:, None, 0] - a[None, :, 0]
+        )
+        scale = tol * max(1.0, float(np.abs(hull).max()))
+        inside[s : s + 8192] = np.all(cross >= -scale, axis=1) | np.all(cross <= scale, axis=1)
+    return inside
+
+
+def sample_region(
+    camera,
+    observations_uv_px: np.ndarray | None = None,
+    region: str = "hull",
+    n_samples: int = 20000,
+) -> RegionSample:
+    """Sample the observed region of a camera on a pixel grid and unproject it.
+
+    Parameters
+    ----------
+    camera : SphereCamera
+    observations_uv_px : ndarray, shape (M, 2), optional
+        Observed pixels of the calibration. Without them (or fewer than 3
+        finite ones) the region is the whole image.
+    region : {"hull", "radius", "image"}
+        ``hull``: convex hull of the observations; ``radius``: disc around
+        the principal point through the farthest observation, clipped to the
+        image; ``image``: the whole image. Always limited to the pixels where
+        the camera has a ray.
+    n_samples : int
+        About how many grid pixels to sample.
+
+    Returns
+    -------
+    RegionSample
+
+    Raises
+    ------
+    ValueError
+        Unknown ``region`` or an empty region.
+    """
+    if region not in REGIONS:
+        raise ValueError(f"unknown region {region!r}; choose from {REGIONS}")
+    w, h = int(camera.width), int(camera.height)
+    obs = None
+    if observations_uv_px is not None:
+        obs = np.asarray(observations_uv_px, float).reshape(-1, 2)
+        obs = obs[np.all(np.isfinite(obs), axis=1)]
+        if len(obs) < 3:
+            obs = None
+    kind = region if obs is not None else "image"
+    if kind == "hull":
+        import cv2
+
+        hull = cv2.convexHull(obs.astype(np.float32)).reshape(-1, 2).astype(float)
+        area = float(cv2.contourArea(hull.astype(np.float32)))
+        desc = f"convex hull of {len(obs)} observed pixels"
+    elif kind == "radius":
+        pp = np.array([camera.xp, camera.yp], float)
+        r_max = float(np.max(np.linalg.norm(obs - pp, axis=1)))
+        area = min(math.pi * r_max**2, float(w * h))
+        desc = f"disc of radius {r_max:.1f} px around the principal point (farthest observation)"
+    else:
+        area = float(w * h)
+        desc = "whole image" + (" (no observations in the calibration)" if obs is None else "")
+    step = math.sqrt(max(area, 1.0) / max(int(n_samples), 16))
+    gu = np.arange(-0.5 + step / 2, w - 0.5, step)
+    gv = np.arange(-0.5 + step / 2, h - 0.5, step)
+    uv = np.stack(np.meshgrid(gu, gv), -1).reshape(-1, 2)
+    if kind == "hull":
+        uv = uv[_inside_convex(uv, hull)]
+    elif kind == "radius":
+        uv = uv[np.linalg.norm(uv - pp, axis=1) <= r_max]
+    rays = pixel_rays(camera, uv)
+    ok = np.all(np.isfinite(rays), axis=1)
+    if not ok.any():
+        raise ValueError(f"the observed region ({desc}) holds no pixel with a ray")
+    n_out = int((~ok).sum())
+    if n_out:
+        desc += f", {n_out} grid pixels without a ray left out"
+    return RegionSample(uv[ok], rays[ok], step, desc)
+
+
+# --------------------------------------------------------------------------- model functions
+
+
+def kb_project(params: np.ndarray, rays: np.ndarray, jacobians: bool = False):
+    """Kannala-Brandt (``cv2.fisheye``) projection of rays with ``z > 0``.
+
+    Parameters
+    ----------
+    params : ndarray, shape (8,)
+        ``fx, fy, cx, cy`` (px) and ``k1..k4`` (dimensionless).
+    rays : ndarray, shape (N, 3)
+        Camera frame (x right, y down, z forward); meaningful for ``z > 0``.
+    jacobians : bool
+        Also return ``d uv / d params``, shape (N, 2, 8).
+
+    Returns
+    -------
+    uv_px : ndarray, shape (N, 2)
+    """
+    fx, fy, cx, cy, k1, k2, k3, k4 = (float(v) for v in params)
+    x, y, z = rays[:, 0], rays[:, 1], rays[:, 2]
+    rxy = np.hypot(x, y)
+    theta = np.arctan2(rxy, z)
+    t2 = theta * theta
+    poly = 1 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4)))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        t_over_r = np.where(rxy > 1e-12 * np.abs(z), theta / np.where(rxy > 0, rxy, 1.0), 1 / z)
+    xd = t_over_r * poly * x
+    yd = t_over_r * poly * y
+    uv = np.column_stack([fx * xd + cx, fy * yd + cy])
+    if not jacobians:
+        return uv
+    J = np.zeros((len(rays), 2, 8))
+    J[:, 0, 0] = xd
+    J[:, 1, 1] = yd
+    J[:, 0, 2] = 1.0
+    J[:, 1, 3] = 1.0
+    for i in range(4):
+        tp = t_over_r * t2 ** (i + 1)
+        J[:, 0, 4 + i] = fx * tp * x
+        J[:, 1, 4 + i] = fy * tp * y
+    return uv, J
+
+
+def rational_project(params: np.ndarray, rays: np.ndarray, jacobians: bool = False):
+    """OpenCV rational pinhole projection (``CALIB_RATIONAL_MODEL``) of rays with ``z > 0``.
+
+    ``a, b = x / z, y / z``, ``r2 = a^2 + b^2``, ``R = (1 + k1 r2 + k2 r2^2 +
+    k3 r2^3) / (1 + k4 r2 + k5 r2^2 + k6 r2^3)``, ``x'' = a R + 2 p1 a b + p2
+    (r2 + 2 a^2)``, ``y'' = b R + p1 (r2 + 2 b^2) + 2 p2 a b``, ``u = fx x'' +
+    cx``, ``v = fy y'' + cy``.
+
+    Parameters
+    ----------
+    params : ndarray, shape (12,)
+        ``fx, fy, cx, cy`` (px), then ``k1, k2, p1, p2, k3, k4, k5, k6``
+        (OpenCV's order of ``dist``).
+    rays : ndarray, shape (N, 3)
+        Camera frame; meaningful for ``z > 0``.
+    jacobians : bool
+        Also return ``d uv / d params``, shape (N, 2, 12).
+
+    Returns
+    -------
+    uv_px : ndarray, shape (N, 2)
+    """
+    fx, fy, cx, cy, k1, k2, p1, p2, k3, k4, k5, k6 = (float(v) for v in params)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        a = rays[:, 0] / rays[:, 2]
+        b = rays[:, 1] / rays[:, 2]
+    r2 = a * a + b * b
+    num = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    den = 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
+    R = num / den
+    xd = a * R + 2 * p1 * a * b + p2 * (r2 + 2 * a * a)
+    yd = b * R + p1 * (r2 + 2 * b * b) + 2 * p2 * a * b
+    uv = np.column_stack([fx * xd + cx, fy * yd + cy])
+    if not jacobians:
+        return uv
+    J = np.zeros((len(rays), 2, 12))
+    J[:, 0, 0] = xd
+    J[:, 1, 1] = yd
+    J[:, 0, 2] = 1.0
+    J[:, 1, 3] = 1.0
+    for col, power in ((4, 1), (5, 2), (8, 3)):  # k1, k2, k3: numerator
+        J[:, 0, col] = fx * a * r2**power / den
+        J[:, 1, col] = fy * b * r2**power / den
+    for col, power in ((9, 1), (10, 2), (11, 3)):  # k4, k5, k6: denominator
+        J[:, 0, col] = -fx * a * num * r2**power / den**2
+        J[:, 1, col] = -fy * b * num * r2**power / den**2
+    J[:, 0, 6] = fx * 2 * a * b
+    J[:, 1, 6] = fy * (r2 + 2 * b * b)
+    J[:, 0, 7] = fx * (r2 + 2 * a * a)
+    J[:, 1, 7] = fy * 2 * a * b
+    return uv, J
+
+
+def ds_project(params: np.ndarray, rays: np.ndarray, jacobians: bool = False):
+    """Double-sphere projection (Usenko et al. 2018, Eq. 40-41).
+
+    Parameters
+    ----------
+    params : ndarray, shape (6,)
+        ``xi, alpha`` (dimensionless), ``fx, fy, cx, cy`` (px).
+    rays : ndarray, shape (N, 3)
+        Camera frame (x right, y down, z forward), any direction; see
+        :func:`ds_valid` for where the model is defined.
+    jacobians : bool
+        Also return ``d uv / d params``, shape (N, 2, 6).
+
+    Returns
+    -------
+    uv_px : ndarray, shape (N, 2)
+    """
+    xi, alpha, fx, fy, cx, cy = (float(v) for v in params)
+    x, y, z = rays[:, 0], rays[:, 1], rays[:, 2]
+    d1 = np.sqrt(x * x + y * y + z * z)
+    w = xi * d1 + z
+    d2 = np.sqrt(x * x + y * y + w * w)
+    den = alpha * d2 + (1 - alpha) * w
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mx = x / den
+        my = y / den
+    uv = np.column_stack([fx * mx + cx, fy * my + cy])
+    if not jacobians:
+        return uv
+    dden_dxi = alpha * w * d1 / d2 + (1 - alpha) * d1
+    dden_dalpha = d2 - w
+    J = np.zeros((len(rays), 2, 6))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        J[:, 0, 0] = -fx * mx / den * dden_dxi
+        J[:, 1, 0] = -fy * my / den * dden_dxi
+        J[:, 0, 1] = -fx * mx / den * dden_dalpha
+        J[:, 1, 1] = -fy * my / den * dden_dalpha
+    J[:, 0, 2] = mx
+    J[:, 1, 3] = my
+    J[:, 0, 4] = 1.0
+    J[:, 1, 5] = 1.0
+    return uv, J
+
+
+def ds_valid(params: np.ndarray, rays: np.ndarray) -> np.ndarray:
+    """Rays (N, 3) the double-sphere model projects (Usenko et al. 2018, Eq. 43), (N,) bool.
+
+    ``z > -w2 |P|`` with ``w1 = alpha / (1 - alpha)`` if ``alpha <= 0.5``
+    else ``(1 - alpha) / alpha`` and ``w2 = (w1 + xi) / sqrt(2 w1 xi + xi^2
+    + 1)``; also ``0 <= alpha <= 1`` and a positive denominator.
+    """
+    xi, alpha = float(params[0]), float(params[1])
+    n = len(rays)
+    if not (0.0 <= alpha <= 1.0) or not math.isfinite(xi):
+        return np.zeros(n, bool)
+    w1 = alpha / (1 - alpha) if alpha <= 0.5 else (1 - alpha) / alpha
+    w2 = (w1 + xi) / math.sqrt(max(2 * w1 * xi + xi * xi + 1, 1e-300))
+    x, y, z = rays[:, 0], rays[:, 1], rays[:, 2]
+    d1 = np.sqrt(x * x + y * y + z * z)
+    w = xi * d1 + z
+    den = alpha * np.sqrt(x * x + y * y + w * w) + (1 - alpha) * w
+    return (z > -w2 * d1) & (den > 0)
+
+
+# --------------------------------------------------------------------------- least squares
+
+
+@dataclass
+class LMResult:
+    """Outcome of :func:`levenberg_marquardt`."""
+
+    x: np.ndarray
+    cost: float
+    iterations: int
+    converged: bool
+
+
+def levenberg_marquardt(
+    fun: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]],
+    x0: np.ndarray,
+    feasible: Callable[[np.ndarray], bool] | None = None,
+    max_iterations: int = 200,
+    rtol: float = 1e-12,
+) -> LMResult:
+    """Minimise ``sum(r(x)^2)`` by Levenberg-Marquardt with Marquardt's diagonal scaling.
+
+    Parameters
+    ----------
+    fun : callable
+        ``fun(x) -> (r (M,), J (M, P))``: residuals and their Jacobian.
+    x0 : ndarray, shape (P,)
+        Start; must be feasible.
+    feasible : callable, optional
+        ``feasible(x) -> bool``; a step to an infeasible point is rejected
+        like one that increases the cost (a barrier).
+    max_iterations : int
+    rtol : float
+        Stop when an accepted step lowers the cost by less than ``rtol``
+        times the cost.
+
+    Returns
+    -------
+    LMResult
+    """
+    x = np.asarray(x0, float).copy()
+    r, J = fun(x)
+    cost = float(r @ r)
+    lam = 1e-3
+    converged = False
+    it = 0
+    while it < max_iterations:
+        it += 1
+        g = J.T @ r
+        A = J.T @ J
+        d = np.diag(A).copy()
+        d[~(d > 0)] = 1.0
+        accepted = False
+        while lam < 1e16:
+            try:
+                step = np.linalg.solve(A + lam * np.diag(d), -g)
+            except np.linalg.LinAlgError:
+                lam *= 10
+                continue
+            x_new = x + step
+            if feasible is None or feasible(x_new):
+                r_new, J_new = fun(x_new)
+                cost_new = float(r_new @ r_new)
+                if np.isfinite(cost_new) and cost_new < cost:
+                    accepted = True
+                    break
+            lam *= 4
+        if not accepted:
+            converged = True  # no descent direction left at this precision
+            break
+        small = cost - cost_new <= rtol * cost
+        x, r, J, cost = x_new, r_new, J_new, cost_new
+        lam = max(lam / 3, 1e-12)
+        if small or cost == 0.0:
+            converged = True
+            break
+    return LMResult(x, cost, it, converged)
+
+
+def _fit(project_fn, params0, rays, uv, feasible=None, max_iterations=200) -> LMResult:
+    """Least-squares fit of ``project_fn(params, rays)`` to ``uv`` (N, 2) px."""
+
+    def fun(p):
+        pred, J = project_fn(p, rays, jacobians=True)
+        return (pred - uv).ravel(), J.reshape(-1, len(p))
+
+    return levenberg_marquardt(fun, params0, feasible, max_iterations)
+
+
+# --------------------------------------------------------------------------- initial values
+
+
+def _radial_polynomial_init(rays, uv, pp, n_terms):
+    """Fit ``|uv - pp| = f (theta + k1 theta^3 + ...)`` linearly; returns ``(f, ks)``."""
+    theta = np.arctan2(np.hypot(rays[:, 0], rays[:, 1]), rays[:, 2])
+    rpix = np.linalg.norm(uv - pp, axis=1)
+    A = np.column_stack([theta ** (2 * i + 1) for i in range(n_terms + 1)])
+    sol, *_ = np.linalg.lstsq(A, rpix, rcond=None)
+    f = float(sol[0]) if sol[0] > 0 else float(np.median(rpix / np.maximum(theta, 1e-9)))
+    return f, sol[1:] / f if sol[0] > 0 else np.zeros(n_terms)
+
+
+def _kb_initial(rays, uv, pp) -> np.ndarray:
+    f, ks = _radial_polynomial_init(rays, uv, pp, 4)
+    return np.array([f, f, pp[0], pp[1], *ks])
+
+
+def _rational_initial(rays, uv, pp) -> np.ndarray:
+    f, _ = _radial_polynomial_init(rays, uv, pp, 4)
+    rho_u = np.hypot(rays[:, 0], rays[:, 1]) / rays[:, 2]
+    rho_d = np.linalg.norm(uv - pp, axis=1) / f
+    r2 = rho_u**2
+    # rho_d (1 + k4 r2 + k5 r2^2 + k6 r2^3) = rho_u (1 + k1 r2 + k2 r2^2 + k3 r2^3)
+    A = np.column_stack(
+        [rho_u * r2, rho_u * r2**2, rho_u * r2**3, -rho_d * r2, -rho_d * r2**2, -rho_d * r2**3]
+    )
+    scale = np.linalg.norm(A, axis=0)
+    scale[scale == 0] = 1.0
+    sol, *_ = np.linalg.lstsq(A / scale, rho_d - rho_u, rcond=None)
+    k = sol / scale
+    params = np.array([f, f, pp[0], pp[1], k[0], k[1], 0.0, 0.0, k[2], k[3], k[4], k[5]])
+    if not _rational_feasible(params, rays):
+        # a denominator crossing zero: start from the polynomial part alone
+        A = A[:, :3]
+        sol, *_ = np.linalg.lstsq(A / scale[:3], rho_d - rho_u, rcond=None)
+        k = sol / scale[:3]
+        params = np.array([f, f, pp[0], pp[1], k[0], k[1], 0.0, 0.0, k[2], 0.0, 0.0, 0.0])
+    return params
+
+
+def _rational_feasible(params, rays) -> bool:
+    k4, k5, k6 = params[9:12]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        r2 = (rays[:, 0] ** 2 + rays[:, 1] ** 2) / rays[:, 2] ** 2
+    # the denominator must stay positive from the axis to the widest ray
+    grid = np.linspace(0.0, float(np.max(r2)) if len(r2) else 1.0, 512)
+    return bool(np.all(1 + grid * (k4 + grid * (k5 + grid * k6)) > 0))
+
+
+def _ds_initial(rays, uv, pp) -> np.ndarray:
+    """Grid over ``(xi, alpha)``: focal lengths solved linearly, the most valid rays then lowest
+    cost wins."""
+    best = None
+    sub = np.unique(np.linspace(0, len(rays) - 1, min(len(rays), 2000)).astype(int))
+    rs = rays[sub]
+    du = uv[sub, 0] - pp[0]
+    dv = uv[sub, 1] - pp[1]
+    for xi in np.linspace(-0.6, 1.6, 23):
+        for alpha in np.linspace(0.0, 0.95, 20):
+            p = np.array([xi, alpha, 1.0, 1.0, pp[0], pp[1]])
+            n_valid = int(ds_valid(p, rays).sum())
+            valid = ds_valid(p, rs)
+            if valid.sum() < 10:
+                continue
+            m = ds_project(p, rs[valid]) - pp
+            fx = float(m[:, 0] @ du[valid] / max(m[:, 0] @ m[:, 0], 1e-300))
+            fy = float(m[:, 1] @ dv[valid] / max(m[:, 1] @ m[:, 1], 1e-300))
+            if not (fx > 0 and fy > 0):
+                continue
+            res = np.column_stack([fx * m[:, 0] - du[valid], fy * m[:, 1] - dv[valid]])
+            key = (-n_valid, float(np.sum(res**2)))
+            if best is None or key < best[0]:
+                best = (key, np.array([xi, alpha, fx, fy, pp[0], pp[1]]))
+    if best is None:
+        raise ValueError("no double-sphere start projects the observed region")
+    return best[1]
+
+
+# --------------------------------------------------------------------------- the result
+
+
+@dataclass
+class ExportResult:
+    """A standard camera model fitted to a calibrated camera, with what the fit loses.
+
+    Attributes
+    ----------
+    target : str
+        One of ``TARGETS``.
+    params : dict
+        Named parameters (``fx, fy, cx, cy`` px; ``k1..`` / ``p1, p2``
+        dimensionless; ``xi, alpha`` for the double sphere).
+    width, height : int
+        Image size (px).
+    rms_px, p95_px, max_px : float
+        Pixel distance between the standard model's projection of each
+        sampled ray and the calibrated camera's pixel, over the covered
+        samples: root mean square, 95th percentile, maximum.
+    coverage : float
+        Fraction (0..1) of the observed region (by area: grid samples) whose
+        rays the standard model represents and the fit used.
+    n_samples, n_covered : int
+        Grid samples of the observed region, and those covered.
+    region : str
+        Description of the observed region.
+    domain : str
+        Which rays the standard model takes.
+    max_incidence_deg_region, max_incidence_deg_covered : float
+        Widest ray of the observed region and of the covered part (deg).
+    observations : dict
+        The same residual at the calibration's own observed pixels (``n``,
+        ``n_covered``, ``rms_px``, ``max_px``), empty without observations.
+    iterations : int
+    converged : bool
+        Levenberg-Marquardt outcome.
+    source : str or None
+        The calibration file.
+    """
+
+    target: str
+    params: dict[str, float]
+    width: int
+    height: int
+    rms_px: float
+    p95_px: float
+    max_px: float
+    coverage: float
+    n_samples: int
+    n_covered: int
+    region: str
+    domain: str
+    max_incidence_deg_region: float
+    max_incidence_deg_covered: float
+    observations: dict = field(default_factory=dict)
+    iterations: int = 0
+    converged: bool = True
+    source: str | None = None
+
+    @property
+    def family(self) -> str:
+        """``"kannala-brandt"``, ``"rational"`` or ``"double-sphere"``."""
+        if self.target in ("opencv-fisheye", "kalibr-equi"):
+            return "kannala-brandt"
+        return "rational" if self.target == "opencv-rational" else "double-sphere"
+
+    @property
+    def vector(self) -> np.ndarray:
+        """The parameters as the vector of the model functions (``kb_project`` ...)."""
+        names = {"kannala-brandt": _KB_NAMES, "rational": _RATIONAL_NAMES}.get(
+            self.family, _DS_NAMES
+        )
+        return np.array([self.params[n] for n in names], float)
+
+    @property
+    def K(self) -> np.ndarray:
+        """Camera matrix (3, 3) ``[[fx, 0, cx], [0, fy, cy], [0, 0, 1]]`` (px)."""
+        p = self.params
+        return np.array([[p["fx"], 0.0, p["cx"]], [0.0, p["fy"], p["cy"]], [0.0, 0.0, 1.0]])
+
+    @property
+    def D(self) -> np.ndarray:
+        """Distortion vector: ``(k1..k4)`` (fisheye), ``(k1, k2, p1, p2, k3..k6)`` (rational),
+        empty for the double sphere."""
+        names = {
+            "kannala-brandt": _KB_NAMES[4:],
+            "rational": _RATIONAL_NAMES[4:],
+        }.get(self.family, ())
+        return np.array([self.params[n] for n in names], float)
+
+    def in_domain(self, rays: np.ndarray) -> np.ndarray:
+        """Rays (N, 3) the exported model projects: (N,) bool (see ``domain``)."""
+        rays = np.asarray(rays, float).reshape(-1, 3)
+        if self.family == "double-sphere":
+            return ds_valid(self.vector, rays)
+        inc = incidence_deg(rays)
+        limit = self.params.get("max_incidence_deg", 90.0)
+        return (rays[:, 2] > 0) & (inc < limit)
+
+    def project(self, rays: np.ndarray, use_cv2: bool = True) -> np.ndarray:
+        """Project camera-frame rays with the exported model.
+
+        Parameters
+        ----------
+        rays : ndarray, shape (N, 3)
+            Camera frame (x right, y down, z forward).
+        use_cv2 : bool
+            OpenCV targets: project with ``cv2.fisheye.projectPoints`` /
+            ``cv2.projectPoints`` themselves (else the numpy model).
+
+        Returns
+        -------
+        uv_px : ndarray, shape (N, 2)
+            NaN outside :meth:`in_domain`.
+        """
+        rays = np.asarray(rays, float).reshape(-1, 3)
+        out = np.full((len(rays), 2), np.nan)
+        ok = self.in_domain(rays) & np.all(np.isfinite(rays), axis=1)
+        if not ok.any():
+            return out
+        r = rays[ok]
+        if use_cv2 and self.target in ("opencv-fisheye", "opencv-rational"):
+            import cv2
+
+            zero = np.zeros(3)
+            obj = np.ascontiguousarray(r[None], np.float64)
+            if self.target == "opencv-fisheye":
+                uv, _ = cv2.fisheye.projectPoints(obj, zero, zero, self.K, self.D)
+            else:
+                uv, _ = cv2.projectPoints(obj[0], zero, zero, self.K, self.D)
+            out[ok] = np.asarray(uv, float).reshape(-1, 2)
+            return out
+        fn = {"kannala-brandt": kb_project, "rational": rational_project}.get(
+            self.family, ds_project
+        )
+        out[ok] = fn(self.vector, r)
+        return out
+
+    def summary(self) -> str:
+        """Several lines saying what was fitted and what it loses."""
+        lines = [
+            f"{self.target}: fitted over {self.n_covered} of {self.n_samples} samples of the "
+            f"observed region ({self.region})",
+            f"  fit residual: RMS {self.rms_px:.4f} px, 95% {self.p95_px:.4f} px, "
+            f"max {self.max_px:.4f} px",
+            f"  covers {100 * self.coverage:.1f}% of the observed region ({self.domain}); "
+            f"widest ray {self.max_incidence_deg_covered:.1f} deg of "
+            f"{self.max_incidence_deg_region:.1f} deg observed",
+        ]
+        if self.coverage < 1.0:
+            lines.append(
+                f"  excluded: {100 * (1 - self.coverage):.1f}% of the observed region "
+                f"({self.n_samples - self.n_covered} samples) lies outside the model's domain"
+            )
+        o = self.observations
+        if o:
+            lines.append(
+                f"  at the calibration's {o['n']} observed pixels: {o['n_covered']} covered, "
+                f"RMS {o['rms_px']:.4f} px, max {o['max_px']:.4f} px"
+            )
+        if not self.converged:
+            lines.append("  warning: the fit did not converge")
+        return "\n".join(lines)
+
+    def fit_dict(self) -> dict:
+        """The fit statistics as a JSON-ready dict."""
+        return {
+            "rms_px": self.rms_px,
+            "p95_px": self.p95_px,
+            "max_px": self.max_px,
+            "coverage": self.coverage,
+            "n_samples": self.n_samples,
+            "n_covered": self.n_covered,
+            "region": self.region,
+            "domain": self.domain,
+            "max_incidence_deg_region": self.max_incidence_deg_region,
+            "max_incidence_deg_covered": self.max_incidence_deg_covered,
+            "observations": self.observations,
+            "iterations": self.iterations,
+            "converged": self.converged,
+        }
+
+    def to_dict(self) -> dict:
+        """The JSON document of an ``opencv-*`` export (``EXPORT_FORMAT``)."""
+        doc = {
+            "format": EXPORT_FORMAT,
+            "target": self.target,
+            "image_size": [self.width, self.height],
+            "pixel_convention": "(0, 0) is the centre of the top-left pixel (OpenCV)",
+            "K": self.K.tolist(),
+        }
+        if self.target == "opencv-fisheye":
+            doc["D"] = self.D.tolist()
+            doc["model"] = "cv2.fisheye (Kannala-Brandt), valid for rays with z > 0"
+        elif self.target == "opencv-rational":
+            doc["dist"] = self.D.tolist()
+            doc["flags"] = ["CALIB_RATIONAL_MODEL"]
+            doc["max_incidence_deg"] = self.params["max_incidence_deg"]
+            doc["model"] = "cv2 pinhole, rational distortion (k1, k2, p1, p2, k3, k4, k5, k6)"
+        else:
+            doc["params"] = dict(self.params)
+        doc["fit"] = self.fit_dict()
+        if self.source:
+            doc["source"] = self.source
+        return doc
+
+    def to_kalibr_yaml(self) -> str:
+        """Kalibr camchain YAML (``cam0``) of a ``kalibr-*`` or fisheye export."""
+        p = self.params
+        if self.family == "kannala-brandt":
+            model, dist_model = "pinhole", "equidistant"
+            intr = [p["fx"], p["fy"], p["cx"], p["cy"]]
+            dist = list(self.D)
+        elif self.family == "double-sphere":
+            model, dist_model = "ds", "none"
+            intr = [p["xi"], p["alpha"], p["fx"], p["fy"], p["cx"], p["cy"]]
+            dist = []
+        else:
+            raise ValueError("Kalibr has no rational distortion model; export opencv-rational")
+
+        def seq(values) -> str:
+            return "[" + ", ".join(repr(float(v)) for v in values) + "]"
+
+        comments = [f"# {line}" for line in self.summary().splitlines()]
+        if self.source:
+            comments.insert(0, f"# exported by gtsam-sphere from {self.source}")
+        lines = [
+            *comments,
+            "cam0:",
+            f"  camera_model: {model}",
+            f"  intrinsics: {seq(intr)}",
+            f"  distortion_model: {dist_model}",
+            f"  distortion_coeffs: {seq(dist)}",
+            f"  resolution: [{int(self.width)}, {int(self.height)}]",
+            "  cam_overlaps: []",
+            "  rostopic: /cam0/image_raw",
+        ]
+        return "\n".join(lines) + "\n"
+
+
+# --------------------------------------------------------------------------- fitting
+
+
+def _observation_rays(camera, uv_px, incidence=None):
+    """Rays of observed pixels; the half of the sphere from their incidence when known."""
+    uv = np.asarray(uv_px, float).reshape(-1, 2)
+    hemi = None
+    if incidence is not None:
+        inc = np.asarray(incidence, float).reshape(-1)
+        if len(inc) == len(uv) and np.all(np.isfinite(inc)):
+            hemi = np.where(inc > 90.0, -1.0, 1.0)
+    return pixel_rays(camera, uv, hemi)
+
+
+def export_camera(
+    camera,
+    target: str,
+    observations_uv_px: np.ndarray | None = None,
+    observations_incidence_deg: np.ndarray | None = None,
+    region: str = "hull",
+    max_incidence_deg: float | None = None,
+    n_samples: int = 20000,
+    source: str | None = None,
+) -> ExportResult:
+    """Fit a standard camera model (``target``) to a calibrated camera's ray field.
+
+    Parameters
+    ----------
+    camera : SphereCamera
+        ``project`` / ``unproject`` in the camera frame (x right, y down, z
+        forward), raw pixels in OpenCV's convention.
+    target : str
+        One of ``TARGETS``.
+    observations_uv_px : ndarray, shape (M, 2), optional
+        The calibration's observed pixels: they define the observed region
+        and the fit is also evaluated at them.
+    observations_incidence_deg : ndarray, shape (M,), optional
+        Their incidence angles (deg), to put each on the right half of the
+        image sphere.
+    region : {"hull", "radius", "image"}
+        See :func:`sample_region`.
+    max_incidence_deg : float, optional
+        Use only rays below this incidence (deg). Default: 80 for
+        ``opencv-rational``, none otherwise (the model's own domain).
+    n_samples : int
+        About how many grid samples of the observed region to fit.
+    source : str, optional
+        Calibration file name recorded in the output.
+
+    Returns
+    -------
+    ExportResult
+
+    Raises
+    ------
+    ValueError
+        Unknown target, or no sampled ray inside the model's domain.
+    """
+    if target not in TARGETS:
+        raise ValueError(f"unknown export target {target!r}; choose from {TARGETS}")
+    sample = sample_region(camera, observations_uv_px, region, n_samples)
+    rays, uv = sample.rays, sample.uv_px
+    inc = sample.incidence_deg
+    pp = np.array([camera.xp, camera.yp], float)
+    family = (
+        "kannala-brandt"
+        if target in ("opencv-fisheye", "kalibr-equi")
+        else ("rational" if target == "opencv-rational" else "double-sphere")
+    )
+    if family == "rational" and max_incidence_deg is None:
+        max_incidence_deg = RATIONAL_MAX_INCIDENCE_DEG
+    use = np.ones(len(rays), bool)
+    if max_incidence_deg is not None:
+        use &= inc < float(max_incidence_deg)
+    if family != "double-sphere":
+        use &= rays[:, 2] > 1e-9
+    if use.sum() < 20:
+        raise ValueError(
+            f"{target}: only {int(use.sum())} of {len(rays)} samples of the observed region are "
+            f"inside the model's domain; nothing to fit"
+        )
+    extra: dict[str, float] = {}
+    if family == "kannala-brandt":
+        names = _KB_NAMES
+        p0 = _kb_initial(rays[use], uv[use], pp)
+        fit = _fit(kb_project, p0, rays[use], uv[use])
+        domain = "rays with z > 0 (incidence below 90 deg; cv2.fisheye cannot project others)"
+        if max_incidence_deg is not None and max_incidence_deg < 90:
+            domain = f"rays below {max_incidence_deg:g} deg incidence"
+            extra["max_incidence_deg"] = float(max_incidence_deg)
+        covered_p = fit.x
+    elif family == "rational":
+        names = _RATIONAL_NAMES
+        p0 = _rational_initial(rays[use], uv[use], pp)
+        r_use = rays[use]
+        fit = _fit(
+            rational_project, p0, r_use, uv[use], lambda p: _rational_feasible(p, r_use), 300
+        )
+        domain = f"rays below {max_incidence_deg:g} deg incidence (pinhole model)"
+        extra["max_incidence_deg"] = float(max_incidence_deg)
+        covered_p = fit.x
+    else:
+        names = _DS_NAMES
+        p0 = _ds_initial(rays[use], uv[use], pp)
+        use &= ds_valid(p0, rays)
+        r_use = rays[use]
+        fit = _fit(ds_project, p0, r_use, uv[use], lambda p: bool(np.all(ds_valid(p, r_use))))
+        domain = "rays the double-sphere model projects (Usenko et al. 2018, Eq. 43)"
+        if max_incidence_deg is not None:
+            domain += f", below {max_incidence_deg:g} deg incidence"
+        covered_p = fit.x
+    params = dict(zip(names, map(float, covered_p)))
+    params.update(extra)
+    result = ExportResult(
+        target=target,
+        params=params,
+        width=int(camera.width),
+        height=int(camera.height),
+        rms_px=math.nan,
+        p95_px=math.nan,
+        max_px=math.nan,
+        coverage=0.0,
+        n_samples=len(rays),
+        n_covered=0,
+        region=sample.description,
+        domain=domain,
+        max_incidence_deg_region=float(np.max(inc)),
+        max_incidence_deg_covered=math.nan,
+        iterations=fit.iterations,
+        converged=fit.converged,
+        source=source,
+    )
+    covered = use & result.in_domain(rays)
+    pred = result.project(rays[covered])
+    err = np.linalg.norm(pred - uv[covered], axis=1)
+    finite = np.isfinite(err)
+    covered[np.flatnonzero(covered)[~finite]] = False
+    err = err[finite]
+    result.n_covered = int(covered.sum())
+    result.coverage = result.n_covered / max(len(rays), 1)
+    if len(err):
+        result.rms_px = float(np.sqrt(np.mean(err**2)))
+        result.p95_px = float(np.percentile(err, 95))
+        result.max_px = float(np.max(err))
+        result.max_incidence_deg_covered = float(np.max(inc[covered]))
+    if observations_uv_px is not None:
+        result.observations = _observation_statistics(
+            camera,
+            result,
+            observations_uv_px,
+            observations_incidence_deg,
+            max_incidence_deg,
+        )
+    return result
+
+
+def _observation_statistics(camera, result, uv_px, incidence, max_incidence_deg) -> dict:
+    uv = np.asarray(uv_px, float).reshape(-1, 2)
+    finite = np.all(np.isfinite(uv), axis=1)
+    uv = uv[finite]
+    inc = None if incidence is None else np.asarray(incidence, float).reshape(-1)[finite]
+    rays = _observation_rays(camera, uv, inc)
+    ok = np.all(np.isfinite(rays), axis=1)
+    ok[ok] = result.in_domain(rays[ok])
+    if max_incidence_deg is not None:
+        ok &= incidence_deg(rays) < max_incidence_deg
+    out = {"n": int(len(uv)), "n_covered": int(ok.sum()), "rms_px": math.nan, "max_px": math.nan}
+    if ok.any():
+        err = np.linalg.norm(result.project(rays[ok]) - uv[ok], axis=1)
+        err = err[np.isfinite(err)]
+        if len(err):
+            out["rms_px"] = float(np.sqrt(np.mean(err**2)))
+            out["max_px"] = float(np.max(err))
+    return out
+
+
+def export_calibration(
+    calib,
+    target: str,
+    region: str = "hull",
+    max_incidence_deg: float | None = None,
+    n_samples: int = 20000,
+    source: str | None = None,
+) -> ExportResult:
+    """Fit ``target`` to a loaded calibration (see :func:`export_camera`).
+
+    The observed region comes from ``calib.extra["observations"]["uv_px"]``
+    (with ``incidence_deg`` when present); without it the whole image.
+
+    Parameters
+    ----------
+    calib : Calibration
+    target : str
+        One of ``TARGETS``.
+    region, max_incidence_deg, n_samples
+        As :func:`export_camera`.
+    source : str, optional
+        Calibration file name recorded in the output.
+
+    Returns
+    -------
+    ExportResult
+
+    Raises
+    ------
+    DatasetError
+        The calibration's observations are malformed or its camera has no
+        usable ray field.
+    """
+    obs = calib.extra.get("observations") if isinstance(calib.extra, dict) else None
+    uv = inc = None
+    if isinstance(obs, dict) and obs.get("uv_px") is not None:
+        try:
+            uv = np.asarray(obs["uv_px"], float).reshape(-1, 2)
+        except (TypeError, ValueError) as exc:
+            raise DatasetError(
+                f"{source or 'calibration'}: observations.uv_px is malformed ({exc})"
+            ) from None
+        if obs.get("incidence_deg") is not None:
+            try:
+                inc = np.asarray(obs["incidence_deg"], float).reshape(-1)
+            except (TypeError, ValueError):
+                inc = None
+            if inc is not None and len(inc) != len(uv):
+                inc = None
+    cam = calib.camera
+    for name in ("xp", "yp", "c"):
+        if not math.isfinite(float(getattr(cam, name))):
+            raise DatasetError(f"{source or 'calibration'}: camera {name} is not finite")
+    if not float(cam.c) > 0:
+        raise DatasetError(f"{source or 'calibration'}: camera c_px must be positive")
+    try:
+        return export_camera(
+            cam,
+            target,
+            uv,
+            inc,
+            region=region,
+            max_incidence_deg=max_incidence_deg,
+            n_samples=n_samples,
+            source=source,
+        )
+    except ValueError as exc:
+        if target not in TARGETS or region not in REGIONS:
+            raise
+        raise DatasetError(f"{source or 'calibration'}: {exc}") from None
+
+
+def write_text_atomic(path: str | os.PathLike, text: str) -> Path:
+    """Write ``text`` (UTF-8) to ``path`` atomically (temporary file in the same folder + rename).
+
+    Parameters
+    ----------
+    path : path-like
+    text : str
+
+    Returns
+    -------
+    Path
+    """
+    path = Path(path)
+    directory = path.parent if str(path.parent) else Path(".")
+    directory.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=directory)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as fh:
+            fh.write(text)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.chmod(tmp, 0o644)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    return path
+
+
+def write_export(result: ExportResult, path: str | os.PathLike) -> Path:
+    """Write an export atomically: JSON for ``opencv-*``, camchain YAML for ``kalibr-*``.
+
+    Parameters
+    ----------
+    result : ExportResult
+    path : path-like
+
+    Returns
+    -------
+    Path
+    """
+    if result.target.startswith("kalibr-"):
+        return write_text_atomic(path, result.to_kalibr_yaml())
+    return write_json_atomic(path, _finite_or_none(result.to_dict()))
+
+
+def _finite_or_none(obj):
+    """Replace NaN / inf (an empty statistic) by ``None`` for JSON."""
+    if isinstance(obj, dict):
+        return {k: _finite_or_none(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_finite_or_none(v) for v in obj]
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    return obj
+
+
+# --------------------------------------------------------------------------- CLI
+
+
+def add_cli_arguments(parser: argparse.ArgumentParser) -> None:
+    """Arguments of ``gtsam-sphere export``."""
+    parser.add_argument("calibration", help="gtsam-sphere/calibration@1 file")
+    parser.add_argument("--to", required=True, choices=TARGETS, dest="target", help="model")
+    parser.add_argument(
+        "-o", "--output", required=True, help="file to write (JSON for opencv-*, YAML for kalibr-*)"
+    )
+    parser.add_argument(
+        "--region",
+        choices=REGIONS,
+        default="hull",
+        help="observed region to fit over: convex hull of the observations (default), "
+        "disc through the farthest one, or the whole image",
+    )
+    parser.add_argument(
+        "--max-incidence-deg",
+        type=float,
+        default=None,
+        help=f"fit only rays below this incidence (default {RATIONAL_MAX_INCIDENCE_DEG:g} for "
+        "opencv-rational, the model's own domain otherwise)",
+    )
+    parser.add_argument("--samples", type=int, default=20000, help="grid samples of the region")
+    parser.add_argument(
+        "--max-rms-px",
+        type=float,
+        default=1.0,
+        help="exit 1 (file still written) when the fit RMS exceeds this (px)",
+    )
+
+
+def run_cli(args) -> int:
+    """Run ``gtsam-sphere export``: 0 on success, 1 if the fit is poor (bad input raises)."""
+    from .calibration import load_calibration
+
+    calib = load_calibration(args.calibration)
+    result = export_calibration(
+        calib,
+        args.target,
+        region=args.region,
+        max_incidence_deg=args.max_incidence_deg,
+        n_samples=args.samples,
+        source=str(args.calibration),
+    )
+    path = write_export(result, args.output)
+    print(f"wrote {path}")
+    print(result.summary())
+    if not (result.rms_px <= args.max_rms_px) or not result.converged:
+        print(
+            f"warning: fit RMS {result.rms_px:.4f} px exceeds {args.max_rms_px:g} px "
+            "or the fit did not converge: the exported model does not reproduce the calibration",
+        )
+        return 1
+    return 0

@@ -1,0 +1,449 @@
+"""Resample a calibrated camera's image onto a standard projection with ``cv2.remap``.
+
+For every output pixel: output pixel -> ray (the output projection) -> raw
+input pixel (the calibrated camera, :func:`gtsam_sphere.export.project_rays`)
+-> ``map_x, map_y`` (float32, OpenCV pixel convention on both sides). The
+whole field of view the camera sees is kept where the output projection can
+hold it: ``equirectangular`` and ``cylindrical`` span any longitude range
+(past 180 deg too), ``perspective`` stays below 180 deg.
+
+Output projections (output pixel ``(u, v)``, ``(0, 0)`` the centre of the
+top-left pixel; output size ``W x H``; rays in the camera frame, x right, y
+down, z forward):
+
+``perspective``
+    ``f = (W / 2) / tan(fov / 2)``, ray ``((u - (W-1)/2) / f, (v - (H-1)/2) / f, 1)``;
+    ``fov`` is the horizontal field of view.
+``equirectangular``
+    longitude ``lon = (u - (W-1)/2) * s`` and latitude ``lat = (v - (H-1)/2) * s``
+    with ``s = fov / W`` rad per pixel (square pixels on the sphere); ray
+    ``(sin lon cos lat, sin lat, cos lon cos lat)``; ``fov`` is the longitude span.
+``cylindrical``
+    ``lon`` as above, ``f = 1 / s`` px per rad; ray ``(sin lon, (v - (H-1)/2) / f, cos lon)``.
+
+Output pixels whose ray the camera does not see (outside its image, or
+outside its field of view) map to :data:`INVALID` and come out as the border
+value.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .dataset import DatasetError
+from .export import RayGrid, project_rays
+
+KINDS: tuple[str, ...] = ("perspective", "equirectangular", "cylindrical")
+#: map value of output pixels without a source pixel (outside any input image)
+INVALID = -1.0e4
+#: default horizontal field of view cap of the perspective output (deg)
+PERSPECTIVE_MAX_FOV_DEG = 120.0
+#: about how many output pixels :func:`remap_tables` projects exactly by default
+EXACT_PIXELS = 250000
+#: latitude cap of the cylindrical output (deg); its rows go as tan(latitude)
+CYLINDRICAL_MAX_LAT_DEG = 75.0
+
+
+@dataclass
+class RemapTables:
+    """``cv2.remap`` tables from an output projection to a camera's raw image.
+
+    Attributes
+    ----------
+    map_x, map_y : ndarray of float32, shape (H, W)
+        Input pixel (OpenCV convention) of each output pixel; :data:`INVALID`
+        where the camera does not see the output ray.
+    kind : str
+        One of ``KINDS``.
+    fov_deg : float
+        Horizontal field of view (perspective) or longitude span
+        (equirectangular, cylindrical) of the output, in degrees.
+    K : ndarray, shape (3, 3)
+        Output camera matrix (px): perspective ``[[f, 0, cx], [0, f, cy], [0, 0, 1]]``;
+        for the others ``f`` is pixels per radian of longitude.
+    valid_fraction : float
+        Fraction of output pixels with a source pixel.
+    step : int
+        Exact projection at every ``step``-th pixel, bilinear in between
+        (see :func:`remap_tables`).
+    interpolation_error_px : float
+        Largest interpolation error found (input px), 0 for ``step = 1``.
+    """
+
+    map_x: np.ndarray
+    map_y: np.ndarray
+    kind: str
+    fov_deg: float
+    K: np.ndarray
+    valid_fraction: float
+    step: int = 1
+    interpolation_error_px: float = 0.0
+
+    @property
+    def size(self) -> tuple[int, int]:
+        """Output ``(width, height)`` in pixels."""
+        return int(self.map_x.shape[1]), int(self.map_x.shape[0])
+
+    @property
+    def valid(self) -> np.ndarray:
+        """Output pixels (H, W) with a source pixel, bool."""
+        return self.map_x > INVALID / 2
+
+
+def output_rays(
+    kind: str, size: tuple[int, int], fov_deg: float, uv_px: np.ndarray | None = None
+) -> np.ndarray:
+    """Rays of output pixels of a projection (see the module docstring).
+
+    Parameters
+    ----------
+    kind : str
+        One of ``KINDS``.
+    size : (int, int)
+        Output ``(width, height)`` (px).
+    fov_deg : float
+        Horizontal field of view (perspective, < 180) or longitude span
+        (equirectangular, cylindrical, <= 360), degrees.
+    uv_px : ndarray, shape (N, 2), optional
+        Output pixels; default every pixel in row-major order (``N = W * H``).
+
+    Returns
+    -------
+    rays : ndarray, shape (N, 3)
+        Camera frame (x right, y down, z forward); unit length except for
+        ``perspective`` / ``cylindrical`` (unnormalised, as written above).
+    """
+    if kind not in KINDS:
+        raise ValueError(f"unknown projection {kind!r}; choose from {KINDS}")
+    w, h = int(size[0]), int(size[1])
+    if uv_px is None:
+        v, u = np.mgrid[0:h, 0:w]
+        uv_px = np.column_stack([u.ravel(), v.ravel()]).astype(float)
+    uv = np.asarray(uv_px, float).reshape(-1, 2)
+    x = uv[:, 0] - (w - 1) / 2.0
+    y = uv[:, 1] - (h - 1) / 2.0
+    fov = math.radians(float(fov_deg))
+    if kind == "perspective":
+        f = _perspective_focal(w, fov_deg)
+        return np.column_stack([x / f, y / f, np.ones(len(uv))])
+    s = fov / w
+    lon = x * s
+    if kind == "equirectangular":
+        lat = y * s
+        return np.column_stack([np.sin(lon) * np.cos(lat), np.sin(lat), np.cos(lon) * np.cos(lat)])
+    return np.column_stack([np.sin(lon), y * s, np.cos(lon)])
+
+
+def _perspective_focal(width: int, fov_deg: float) -> float:
+    if not 0 < fov_deg < 180:
+        raise ValueError(f"perspective field of view must be in (0, 180) deg, got {fov_deg}")
+    return (width / 2.0) / math.tan(math.radians(fov_deg) / 2)
+
+
+def camera_extent_deg(camera, n_cols: int = 96) -> tuple[float, float]:
+    """Largest ``|longitude|`` and ``|latitude|`` (deg) of the camera's rays over its image.
+
+    Longitude ``atan2(x, z)``, latitude ``asin(y)`` of each unit ray, on a
+    grid of about ``n_cols`` columns; pixels without a ray are skipped.
+
+    Returns
+    -------
+    (max_abs_lon_deg, max_abs_lat_deg) : tuple of float
+    """
+    rays = RayGrid(camera, n_cols).rays
+    if len(rays) == 0:
+        raise ValueError("the camera has no ray anywhere in its image")
+    lon = np.degrees(np.arctan2(rays[:, 0], rays[:, 2]))
+    lat = np.degrees(np.arcsin(np.clip(rays[:, 1], -1, 1)))
+    return float(np.max(np.abs(lon))), float(np.max(np.abs(lat)))
+
+
+def default_geometry(
+    camera, kind: str, fov_deg: float | None = None, size: tuple[int, int] | None = None
+) -> tuple[float, tuple[int, int]]:
+    """Field of view and output size used when not given.
+
+    ``fov_deg``: the camera's full longitude span (twice the largest
+    ``|longitude|`` of :func:`camera_extent_deg`), capped at
+    :data:`PERSPECTIVE_MAX_FOV_DEG` for ``perspective`` and at 360.
+    ``size``: width of the camera image; height the camera's for
+    ``perspective``, else enough rows for its latitude span (square pixels
+    on the sphere; cylindrical capped at :data:`CYLINDRICAL_MAX_LAT_DEG`).
+
+    Returns
+    -------
+    fov_deg : float
+    size : (int, int)
+        ``(width, height)`` px.
+    """
+    if kind not in KINDS:
+        raise ValueError(f"unknown projection {kind!r}; choose from {KINDS}")
+    lon, lat = camera_extent_deg(camera)
+    if fov_deg is None:
+        fov_deg = min(2 * lon, 360.0)
+        if kind == "perspective":
+            fov_deg = min(fov_deg, PERSPECTIVE_MAX_FOV_DEG)
+    if size is None:
+        w = int(camera.width)
+        if kind == "perspective":
+            h = int(camera.height)
+        elif kind == "equirectangular":
+            h = int(math.ceil(w * min(2 * lat, 180.0) / fov_deg))
+        else:
+            f = w / math.radians(fov_deg)
+            h = int(math.ceil(2 * f * math.tan(math.radians(min(lat, CYLINDRICAL_MAX_LAT_DEG)))))
+        size = (w, max(h, 1))
+    return float(fov_deg), (int(size[0]), int(size[1]))
+
+
+def remap_tables(
+    camera,
+    kind: str = "equirectangular",
+    fov_deg: float | None = None,
+    size: tuple[int, int] | None = None,
+    step: int | None = None,
+    chunk: int = 262144,
+) -> RemapTables:
+    """Build ``cv2.remap`` tables from an output projection to the camera's raw image.
+
+    Parameters
+    ----------
+    camera : SphereCamera
+        The calibrated camera (``project`` / ``unproject``).
+    kind : str
+        One of ``KINDS``.
+    fov_deg : float, optional
+        See :func:`output_rays`; default :func:`default_geometry`.
+    size : (int, int), optional
+        Output ``(width, height)`` px; default :func:`default_geometry`.
+    step : int, optional
+        ``1``: every output pixel is projected exactly. ``k > 1``: every
+        ``k``-th pixel (rows and columns) is, the tables are interpolated
+        bilinearly in between and pixels next to the edge of the valid area
+        are projected exactly; the largest interpolation error found at up to
+        2000 random pixels is reported (``interpolation_error_px``). Default:
+        the smallest ``k`` keeping about :data:`EXACT_PIXELS` exact pixels.
+    chunk : int
+        Output pixels per batch (memory).
+
+    Returns
+    -------
+    RemapTables
+    """
+    fov_deg, size = default_geometry(camera, kind, fov_deg, size)
+    w, h = size
+    if w <= 0 or h <= 0:
+        raise ValueError(f"output size must be positive, got {w}x{h}")
+    if kind == "perspective":
+        f = _perspective_focal(w, fov_deg)
+    else:
+        if not 0 < fov_deg <= 360:
+            raise ValueError(f"{kind} longitude span must be in (0, 360] deg, got {fov_deg}")
+        f = w / math.radians(fov_deg)
+    if step is None:
+        step = max(1, int(math.ceil(math.sqrt(w * h / EXACT_PIXELS))))
+    step = int(step)
+    if step < 1:
+        raise ValueError(f"step must be >= 1, got {step}")
+    K = np.array([[f, 0.0, (w - 1) / 2.0], [0.0, f, (h - 1) / 2.0], [0.0, 0.0, 1.0]])
+    grid = RayGrid(camera)
+
+    def exact(uv: np.ndarray) -> np.ndarray:
+        out = np.full((len(uv), 2), np.nan)
+        for s in range(0, len(uv), chunk):
+            rays = output_rays(kind, size, fov_deg, uv[s : s + chunk])
+            out[s : s + chunk] = project_rays(camera, rays, grid=grid)
+        return out
+
+    error = 0.0
+    if step == 1:
+        v, u = np.mgrid[0:h, 0:w]
+        src = exact(np.column_stack([u.ravel(), v.ravel()]).astype(float))
+        mx, my = src[:, 0].reshape(h, w), src[:, 1].reshape(h, w)
+    else:
+        cols = np.unique(np.append(np.arange(0, w, step), w - 1))
+        rows = np.unique(np.append(np.arange(0, h, step), h - 1))
+        gu, gv = np.meshgrid(cols, rows)
+        nodes = exact(np.column_stack([gu.ravel(), gv.ravel()]).astype(float))
+        mx = _bilinear(nodes[:, 0].reshape(len(rows), len(cols)), rows, cols, h, w)
+        my = _bilinear(nodes[:, 1].reshape(len(rows), len(cols)), rows, cols, h, w)
+        # cells touching the edge of the valid area: project those pixels exactly
+        node_ok = np.isfinite(nodes[:, 0]).reshape(len(rows), len(cols)).astype(float)
+        frac = _bilinear(node_ok, rows, cols, h, w)
+        edge = np.flatnonzero(((frac > 1e-9) & (frac < 1 - 1e-9)).ravel())
+        if len(edge):
+            uv_edge = np.column_stack([edge % w, edge // w]).astype(float)
+            src = exact(uv_edge)
+            mx.ravel()[edge] = src[:, 0]
+            my.ravel()[edge] = src[:, 1]
+        error = _interpolation_error(exact, mx, my, w, h)
+    valid = np.isfinite(mx) & np.isfinite(my)
+    map_x = np.where(valid, mx, INVALID).astype(np.float32)
+    map_y = np.where(valid, my, INVALID).astype(np.float32)
+    return RemapTables(
+        map_x, map_y, kind, float(fov_deg), K, float(np.mean(valid)), step, float(error)
+    )
+
+
+def _bilinear(values: np.ndarray, rows: np.ndarray, cols: np.ndarray, h: int, w: int):
+    """Bilinear interpolation (H, W) of node values (R, C) at rows x cols; NaN spreads."""
+    iu = np.clip(np.searchsorted(cols, np.arange(w), side="right") - 1, 0, len(cols) - 2)
+    iv = np.clip(np.searchsorted(rows, np.arange(h), side="right") - 1, 0, len(rows) - 2)
+    if len(cols) == 1 or len(rows) == 1:
+        raise ValueError("output too small for step > 1; use step=1")
+    tu = (np.arange(w) - cols[iu]) / (cols[iu + 1] - cols[iu])
+    tv = (np.arange(h) - rows[iv]) / (rows[iv + 1] - rows[iv])
+    top = values[iv][:, iu] * (1 - tu) + values[iv][:, iu + 1] * tu
+    bottom = values[iv + 1][:, iu] * (1 - tu) + values[iv + 1][:, iu + 1] * tu
+    return top * (1 - tv[:, None]) + bottom * tv[:, None]
+
+
+def _interpolation_error(exact, mx, my, w, h, n: int = 2000, seed: int = 0) -> float:
+    """Largest distance (px) between interpolated and exact tables at random valid pixels."""
+    ok = np.flatnonzero(np.isfinite(mx.ravel()))
+    if len(ok) == 0:
+        return 0.0
+    pick = np.random.default_rng(seed).choice(ok, min(n, len(ok)), replace=False)
+    uv = np.column_stack([pick % w, pick // w]).astype(float)
+    ref = exact(uv)
+    err = np.hypot(mx.ravel()[pick] - ref[:, 0], my.ravel()[pick] - ref[:, 1])
+    err = err[np.isfinite(err)]
+    return float(err.max()) if len(err) else 0.0
+
+
+def apply_remap(
+    image: np.ndarray,
+    tables: RemapTables,
+    interpolation: int | None = None,
+    border_value: float | tuple = 0,
+) -> np.ndarray:
+    """Resample a raw camera image with :func:`remap_tables` output.
+
+    Parameters
+    ----------
+    image : ndarray, shape (height, width) or (height, width, channels)
+        The camera's raw image (any dtype ``cv2.remap`` takes).
+    tables : RemapTables
+    interpolation : int, optional
+        ``cv2.INTER_*``; default ``cv2.INTER_LINEAR``.
+    border_value : scalar or tuple
+        Value of output pixels without a source pixel.
+
+    Returns
+    -------
+    out : ndarray, shape (H, W[, channels])
+        Same dtype as ``image``.
+    """
+    import cv2
+
+    if interpolation is None:
+        interpolation = cv2.INTER_LINEAR
+    return cv2.remap(
+        image,
+        tables.map_x,
+        tables.map_y,
+        interpolation,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=border_value,
+    )
+
+
+def write_image_atomic(path: str | os.PathLike, image: np.ndarray) -> Path:
+    """Write an image with ``cv2.imwrite`` atomically (temporary file in the same folder + rename).
+
+    The format follows the extension of ``path`` (``.png`` ...).
+
+    Raises
+    ------
+    ValueError
+        ``cv2.imwrite`` cannot write that format.
+    """
+    import cv2
+
+    path = Path(path)
+    directory = path.parent if str(path.parent) else Path(".")
+    directory.mkdir(parents=True, exist_ok=True)
+    suffix = path.suffix or ".png"
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=f".tmp{suffix}", dir=directory)
+    os.close(fd)
+    try:
+        if not cv2.imwrite(tmp, image):
+            raise ValueError(f"{path}: cv2.imwrite cannot write a {suffix!r} image")
+        os.chmod(tmp, 0o644)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    return path
+
+
+def _parse_size(text: str | None) -> tuple[int, int] | None:
+    if text is None:
+        return None
+    try:
+        w, h = (int(p) for p in text.lower().split("x"))
+    except ValueError:
+        raise DatasetError(f"--size must look like 1920x1080, got {text!r}") from None
+    if w <= 0 or h <= 0:
+        raise DatasetError(f"--size must be positive, got {text!r}")
+    return w, h
+
+
+# --------------------------------------------------------------------------- CLI
+
+
+def add_cli_arguments(parser: argparse.ArgumentParser) -> None:
+    """Arguments of ``gtsam-sphere undistort``."""
+    parser.add_argument("calibration", help="gtsam-sphere/calibration@1 file")
+    parser.add_argument("image", help="raw image of the calibrated camera")
+    parser.add_argument("--to", required=True, choices=KINDS, dest="kind", help="projection")
+    parser.add_argument(
+        "--fov-deg",
+        type=float,
+        default=None,
+        help="horizontal field of view (perspective) or longitude span (others); "
+        "default: the camera's own, perspective capped at "
+        f"{PERSPECTIVE_MAX_FOV_DEG:g}",
+    )
+    parser.add_argument("--size", default=None, help="output WxH (default from the camera)")
+    parser.add_argument("-o", "--output", required=True, help="output image (.png)")
+
+
+def run_cli(args) -> int:
+    """Run ``gtsam-sphere undistort``; 0 on success (bad input raises ``DatasetError``)."""
+    import cv2
+
+    from .calibration import load_calibration
+
+    calib = load_calibration(args.calibration)
+    if not Path(args.image).is_file():
+        raise DatasetError(f"{args.image}: no such image file")
+    image = cv2.imread(str(args.image), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise DatasetError(f"{args.image}: not an image cv2 can read")
+    cam = calib.camera
+    if image.shape[1] != cam.width or image.shape[0] != cam.height:
+        raise DatasetError(
+            f"{args.image}: image is {image.shape[1]}x{image.shape[0]} px but calibration "
+            f"{args.calibration} is for {cam.width}x{cam.height} px"
+        )
+    try:
+        tables = remap_tables(cam, args.kind, args.fov_deg, _parse_size(args.size))
+    except ValueError as exc:
+        raise DatasetError(f"{args.calibration}: {exc}") from None
+    out = apply_remap(image, tables)
+    path = write_image_atomic(args.output, out)
+    w, h = tables.size
+    print(
+        f"wrote {path}: {args.kind} {w}x{h} px, field of view {tables.fov_deg:.1f} deg, "
+        f"{100 * tables.valid_fraction:.1f}% of the output has a source pixel"
+    )
+    return 0
