@@ -266,7 +266,8 @@ def test_rescue_partial_chessboard():
     assert rms < 0.1
 
 
-def test_detect_cli_recover(tmp_path, capsys):
+def _render_views(tmp_path) -> list[str]:
+    """The full views and the corner view of the 6x8 board through FISHEYE, as PNG paths."""
     board = BoardSpec.parse(BOARD_6X8)
     paths = []
     for name, (R, t) in {**FULL_VIEWS, "corner": CORNER_VIEW}.items():
@@ -275,6 +276,11 @@ def test_detect_cli_recover(tmp_path, capsys):
         )
         paths.append(str(tmp_path / f"{name}.png"))
         cv2.imwrite(paths[-1], img)
+    return paths
+
+
+def test_detect_cli_recover(tmp_path, capsys):
+    paths = _render_views(tmp_path)
     parser = argparse.ArgumentParser()
     add_cli_arguments(parser)
     out = tmp_path / "ds.json"
@@ -421,14 +427,7 @@ def test_rendered_images_to_calibration_recover_the_lens(tmp_path):
     from gtsam_sphere.calibrate import CalibrationOptions, calibrate
     from gtsam_sphere.dataset import load_dataset
 
-    board = BoardSpec.parse(BOARD_6X8)
-    paths = []
-    for name, (R, t) in {**FULL_VIEWS, "corner": CORNER_VIEW}.items():
-        img, _ = render_board_image(
-            board, FISHEYE.project, FISHEYE.unproject, R, t, W, H, supersample=2, blur_sigma_px=0.7
-        )
-        paths.append(str(tmp_path / f"{name}.png"))
-        cv2.imwrite(paths[-1], img)
+    paths = _render_views(tmp_path)
     parser = argparse.ArgumentParser()
     add_cli_arguments(parser)
     out = tmp_path / "ds.json"
