@@ -463,11 +463,59 @@ def _jsonable(obj: Any, where: str = "") -> Any:
     return obj
 
 
-def write_json_atomic(path: str | os.PathLike, doc: Any, indent: int | None = 1) -> Path:
-    """Write ``doc`` as JSON to ``path`` atomically (temporary file + rename).
+def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> Path:
+    """Write ``data`` to ``path`` atomically (temporary file in the same folder + rename).
 
-    A reader never sees a half-written file; NaN or inf anywhere raises
-    ``ValueError`` naming the key path and leaves any existing file untouched.
+    A reader never sees a half-written file, and an interrupted write leaves
+    any existing file untouched and no temporary behind.
+
+    Parameters
+    ----------
+    path : path-like
+        Destination; missing parent directories are created.
+    data : bytes
+
+    Returns
+    -------
+    pathlib.Path
+        ``path``.
+
+    Raises
+    ------
+    OSError
+        ``path`` cannot be written (a directory, no permission, ...); the
+        exception's ``filename`` is ``path``, never the temporary file.
+    """
+    path = Path(path)
+    if path.is_dir():
+        raise IsADirectoryError(errno.EISDIR, "is a directory, not a file", str(path))
+    directory = path.parent if str(path.parent) else Path(".")
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=directory)
+    except OSError as exc:
+        raise type(exc)(exc.errno, exc.strerror, str(path)) from exc
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.chmod(tmp, 0o644)
+        os.replace(tmp, path)
+    except BaseException as exc:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        if isinstance(exc, OSError) and exc.errno is not None:
+            raise type(exc)(exc.errno, exc.strerror, str(path)) from exc
+        raise
+    return path
+
+
+def write_json_atomic(path: str | os.PathLike, doc: Any, indent: int | None = 1) -> Path:
+    """Write ``doc`` as JSON to ``path`` atomically (:func:`write_bytes_atomic`).
+
+    NaN or inf anywhere raises ``ValueError`` naming the key path and leaves
+    any existing file untouched.
 
     Parameters
     ----------
@@ -488,31 +536,7 @@ def write_json_atomic(path: str | os.PathLike, doc: Any, indent: int | None = 1)
     ValueError
         NaN or inf in ``doc``.
     OSError
-        ``path`` cannot be written (a directory, no permission, ...); the
-        exception's ``filename`` is ``path``, never the temporary file.
+        ``path`` cannot be written; the exception's ``filename`` is ``path``.
     """
-    path = Path(path)
     text = json.dumps(_jsonable(doc), indent=indent, allow_nan=False)
-    if path.is_dir():
-        raise IsADirectoryError(errno.EISDIR, "is a directory, not a file", str(path))
-    directory = path.parent if str(path.parent) else Path(".")
-    try:
-        directory.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=directory)
-    except OSError as exc:
-        raise type(exc)(exc.errno, exc.strerror, str(path)) from exc
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            fh.write(text)
-            fh.write("\n")
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException as exc:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        if isinstance(exc, OSError) and exc.errno is not None:
-            raise type(exc)(exc.errno, exc.strerror, str(path)) from exc
-        raise
-    return path
+    return write_bytes_atomic(path, (text + "\n").encode("utf-8"))

@@ -56,14 +56,13 @@ from __future__ import annotations
 import argparse
 import math
 import os
-import tempfile
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from .dataset import DatasetError, write_json_atomic
+from .dataset import DatasetError, write_bytes_atomic, write_json_atomic
 
 TARGETS: tuple[str, ...] = ("opencv-fisheye", "opencv-rational", "kalibr-equi", "kalibr-ds")
 REGIONS: tuple[str, ...] = ("hull", "radius", "image")
@@ -1301,33 +1300,8 @@ def export_calibration(
 
 
 def write_text_atomic(path: str | os.PathLike, text: str) -> Path:
-    """Write ``text`` (UTF-8) to ``path`` atomically (temporary file in the same folder + rename).
-
-    Parameters
-    ----------
-    path : path-like
-    text : str
-
-    Returns
-    -------
-    Path
-    """
-    path = Path(path)
-    directory = path.parent if str(path.parent) else Path(".")
-    directory.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=directory)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            fh.write(text)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-    return path
+    """Write ``text`` (UTF-8) to ``path`` atomically (``dataset.write_bytes_atomic``)."""
+    return write_bytes_atomic(path, text.encode("utf-8"))
 
 
 def write_export(result: ExportResult, path: str | os.PathLike) -> Path:

@@ -31,13 +31,12 @@ from __future__ import annotations
 import argparse
 import math
 import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from .dataset import DatasetError
+from .dataset import DatasetError, write_bytes_atomic
 from .export import RayGrid, project_rays
 
 KINDS: tuple[str, ...] = ("perspective", "equirectangular", "cylindrical")
@@ -356,33 +355,20 @@ def apply_remap(
 
 
 def write_image_atomic(path: str | os.PathLike, image: np.ndarray) -> Path:
-    """Write an image with ``cv2.imwrite`` atomically (temporary file in the same folder + rename).
-
-    The format follows the extension of ``path`` (``.png`` ...).
+    """Write an image atomically; the format follows the extension of ``path`` (``.png`` ...).
 
     Raises
     ------
     ValueError
-        ``cv2.imwrite`` cannot write that format.
+        OpenCV cannot encode that format.
     """
     import cv2
 
-    path = Path(path)
-    directory = path.parent if str(path.parent) else Path(".")
-    directory.mkdir(parents=True, exist_ok=True)
-    suffix = path.suffix or ".png"
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=f".tmp{suffix}", dir=directory)
-    os.close(fd)
-    try:
-        if not cv2.imwrite(tmp, image):
-            raise ValueError(f"{path}: cv2.imwrite cannot write a {suffix!r} image")
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-    return path
+    suffix = Path(path).suffix or ".png"
+    ok, data = cv2.imencode(suffix, image)
+    if not ok:
+        raise ValueError(f"{path}: OpenCV cannot write a {suffix!r} image")
+    return write_bytes_atomic(path, data.tobytes())
 
 
 def _parse_size(text: str | None) -> tuple[int, int] | None:
