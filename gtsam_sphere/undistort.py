@@ -208,6 +208,7 @@ def remap_tables(
     fov_deg: float | None = None,
     size: tuple[int, int] | None = None,
     step: int | None = None,
+    tol_px: float = 0.01,
     chunk: int = 262144,
 ) -> RemapTables:
     """Build ``cv2.remap`` tables from an output projection to the camera's raw image.
@@ -225,10 +226,14 @@ def remap_tables(
     step : int, optional
         ``1``: every output pixel is projected exactly. ``k > 1``: every
         ``k``-th pixel (rows and columns) is, the tables are interpolated
-        bilinearly in between and pixels next to the edge of the valid area
-        are projected exactly; the largest interpolation error found at up to
+        bilinearly in between; cells next to the edge of the valid area, or
+        where the tables bend enough for bilinear interpolation to err by more
+        than ``tol_px``, are projected exactly; the largest interpolation error
+        found at up to
         2000 random pixels is reported (``interpolation_error_px``). Default:
         the smallest ``k`` keeping about :data:`EXACT_PIXELS` exact pixels.
+    tol_px : float
+        Interpolation tolerance (input px) for ``step > 1``.
     chunk : int
         Output pixels per batch (memory).
 
@@ -273,15 +278,21 @@ def remap_tables(
         nodes = exact(np.column_stack([gu.ravel(), gv.ravel()]).astype(float))
         mx = _bilinear(nodes[:, 0].reshape(len(rows), len(cols)), rows, cols, h, w)
         my = _bilinear(nodes[:, 1].reshape(len(rows), len(cols)), rows, cols, h, w)
-        # cells touching the edge of the valid area: project those pixels exactly
+        # cells touching the edge of the valid area or where the tables bend more than
+        # bilinear interpolation follows: project those pixels exactly
         node_ok = np.isfinite(nodes[:, 0]).reshape(len(rows), len(cols)).astype(float)
         frac = _bilinear(node_ok, rows, cols, h, w)
-        edge = np.flatnonzero(((frac > 1e-9) & (frac < 1 - 1e-9)).ravel())
+        bent = _bilinear(_curved_nodes(nodes, len(rows), len(cols), tol_px), rows, cols, h, w)
+        # (NaN * 0 spreads along node lines too: those pixels are redone as well)
+        near = frac > 1e-9
+        edge = np.flatnonzero(
+            (near & ((frac < 1 - 1e-9) | ~np.isfinite(mx) | (bent > 1e-9))).ravel()
+        )
         if len(edge):
             uv_edge = np.column_stack([edge % w, edge // w]).astype(float)
             src = exact(uv_edge)
-            mx.ravel()[edge] = src[:, 0]
-            my.ravel()[edge] = src[:, 1]
+            mx[edge // w, edge % w] = src[:, 0]
+            my[edge // w, edge % w] = src[:, 1]
         error = _interpolation_error(exact, mx, my, w, h)
     valid = np.isfinite(mx) & np.isfinite(my)
     map_x = np.where(valid, mx, INVALID).astype(np.float32)
@@ -289,6 +300,29 @@ def remap_tables(
     return RemapTables(
         map_x, map_y, kind, float(fov_deg), K, float(np.mean(valid)), step, float(error)
     )
+
+
+def _curved_nodes(nodes: np.ndarray, n_rows: int, n_cols: int, tol_px: float) -> np.ndarray:
+    """1.0 at nodes (R, C) where bilinear interpolation may err by more than ``tol_px``.
+
+    The error of linear interpolation between nodes is about a second
+    difference / 8; nodes next to one whose second difference (along rows or
+    columns, either table) exceeds ``8 tol_px`` or is undefined are flagged.
+    """
+    flag = np.zeros((n_rows, n_cols), bool)
+    for k in range(2):
+        m = nodes[:, k].reshape(n_rows, n_cols)
+        for axis in (0, 1):
+            if m.shape[axis] < 3:
+                continue
+            a = np.moveaxis(m, axis, 0)
+            d2 = np.abs(a[2:] - 2 * a[1:-1] + a[:-2])
+            bad = ~(d2 <= 8 * tol_px) & np.isfinite(a[1:-1])
+            f = np.moveaxis(flag, axis, 0)
+            f[1:-1] |= bad
+            f[2:] |= bad
+            f[:-2] |= bad
+    return flag.astype(float)
 
 
 def _bilinear(values: np.ndarray, rows: np.ndarray, cols: np.ndarray, h: int, w: int):
@@ -301,7 +335,7 @@ def _bilinear(values: np.ndarray, rows: np.ndarray, cols: np.ndarray, h: int, w:
     tv = (np.arange(h) - rows[iv]) / (rows[iv + 1] - rows[iv])
     top = values[iv][:, iu] * (1 - tu) + values[iv][:, iu + 1] * tu
     bottom = values[iv + 1][:, iu] * (1 - tu) + values[iv + 1][:, iu + 1] * tu
-    return top * (1 - tv[:, None]) + bottom * tv[:, None]
+    return np.ascontiguousarray(top * (1 - tv[:, None]) + bottom * tv[:, None])
 
 
 def _interpolation_error(exact, mx, my, w, h, n: int = 2000, seed: int = 0) -> float:
@@ -312,7 +346,8 @@ def _interpolation_error(exact, mx, my, w, h, n: int = 2000, seed: int = 0) -> f
     pick = np.random.default_rng(seed).choice(ok, min(n, len(ok)), replace=False)
     uv = np.column_stack([pick % w, pick // w]).astype(float)
     ref = exact(uv)
-    err = np.hypot(mx.ravel()[pick] - ref[:, 0], my.ravel()[pick] - ref[:, 1])
+    pv, pu = pick // w, pick % w
+    err = np.hypot(mx[pv, pu] - ref[:, 0], my[pv, pu] - ref[:, 1])
     err = err[np.isfinite(err)]
     return float(err.max()) if len(err) else 0.0
 
