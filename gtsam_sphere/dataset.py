@@ -158,15 +158,8 @@ def _finite_vector(value: Any, n: int, where: str, max_abs: float | None = None)
     if not isinstance(value, (list, tuple)) or len(value) != n:
         raise DatasetError(f"{where}: expected a list of {n} numbers, got {_short(value)}")
     out = []
-    for v in value:
-        if not _is_number(v):
-            raise DatasetError(f"{where}: expected numbers, got {_short(value)}")
-        try:
-            f = float(v)
-        except (OverflowError, ValueError):
-            raise DatasetError(f"{where}: number too large in {_short(value)}") from None
-        if not math.isfinite(f):
-            raise DatasetError(f"{where}: contains NaN or inf: {_short(value)}")
+    for k, v in enumerate(value):
+        f = _finite_float(v, where, f"element {k} of {_short(value)}")
         if max_abs is not None and abs(f) > max_abs:
             raise DatasetError(f"{where}: {f:g} exceeds the largest accepted magnitude {max_abs:g}")
         out.append(f)
