@@ -2,7 +2,7 @@
 
 A calibration is tested on images it was not estimated from: each test image is
 resected (:func:`gtsam_sphere.resect.resect`, pose only, calibration fixed,
-targets at the board's exact coordinates) and its reprojection error in raw
+targets at the calibration's board coordinates) and its reprojection error in raw
 pixels is pooled as ``sqrt(mean(du^2 + dv^2))`` over all test corners
 (OpenCV's RMS, the definition of ``../shared/data/README.md``).
 
@@ -38,7 +38,13 @@ set (P3P poses, ``calibrate(..., init=...)``, the held-out image removed from
 it) and skip the covariance; they are only starting values.
 
     python benchmarks/holdout.py [--model radial+knn [brown+knn ...]] [--quick]
-        [--max-views N] [--only ov_plane,opencv,fish,recovery] [--json OUT.json]
+        [--control-sigma none 0.0005] [--max-views N]
+        [--only ov_plane,opencv,fish,recovery] [--json OUT.json]
+
+``--control-sigma``: each model runs with the board's nominal coordinates taken as
+exact (``none``) and with the board corners estimated around them with that sigma in
+metres (``gtsam-sphere calibrate --control-sigma``); held-out images are then resected
+against the calibration's estimated board.
 
 Default: ``--model radial+knn``, every view; about 6-8 minutes per model on 2
 cores. ``--quick`` holds out 6 views per set.
@@ -118,9 +124,34 @@ def held_out_indices(n: int, max_views: int | None) -> list[int]:
     return sorted(set(np.linspace(0, n - 1, max_views).round().astype(int).tolist()))
 
 
-def options(model: str, seed: int) -> CalibrationOptions:
+def options(model: str, seed: int, control_sigma: float | None = None) -> CalibrationOptions:
     """Calibration options of the benchmark (no covariance: not needed here)."""
-    return CalibrationOptions(model=Model(model), seed=seed, covariance=False)
+    return CalibrationOptions(
+        model=Model(model), seed=seed, covariance=False, control_sigma=control_sigma
+    )
+
+
+def variant_label(model: str, control_sigma: float | None) -> str:
+    """Row label of one of our variants."""
+    if control_sigma is None:
+        return f"ours {model}"
+    return f"ours {model}, board estimated (control sigma {control_sigma * 1000:g} mm)"
+
+
+def adjusted_xyz(cal, dataset, rows: np.ndarray) -> np.ndarray:
+    """Target coordinates (N, 3) of ``dataset``'s observations ``rows`` in ``cal``.
+
+    The calibration's adjusted coordinates: the nominal ones for exact targets, the
+    estimated board shape with ``control_sigma``. Targets ``cal`` never saw keep the
+    dataset's coordinates.
+    """
+    index = {k: i for i, k in enumerate(cal.target_ids)}
+    out = dataset.target_xyz[dataset.obs_target[rows]].copy()
+    for n, j in enumerate(dataset.obs_target[rows]):
+        i = index.get(dataset.target_ids[j])
+        if i is not None:
+            out[n] = cal.target_xyz[i]
+    return out
 
 
 def subset_init(init: Initialisation, keep: np.ndarray) -> Initialisation:
@@ -140,21 +171,27 @@ def subset_init(init: Initialisation, keep: np.ndarray) -> Initialisation:
 # --------------------------------------------------------------------------------------
 
 
-def ours_leave_one_out(init: Initialisation, model: str, held: list[int], seed: int) -> dict:
+def ours_leave_one_out(
+    init: Initialisation, model: str, held: list[int], seed: int, control_sigma=None
+) -> dict:
     """Leave-one-view-out with one of our models.
 
     Returns ``{"residuals": list of (N_k, 2) px per held-out view, "ids": [...],
     "failed": [...]}``.
     """
     ds = init.dataset
-    per_view = views(ds)
     out = {"residuals": [], "ids": [], "failed": []}
     for n, k in enumerate(held):
         keep = np.ones(len(ds.image_ids), bool)
         keep[k] = False
         t0 = time.perf_counter()
-        cal = calibrate(ds.subset_images(keep), options(model, seed), init=subset_init(init, keep))
-        uv, xyz = per_view[k]
+        cal = calibrate(
+            ds.subset_images(keep),
+            options(model, seed, control_sigma),
+            init=subset_init(init, keep),
+        )
+        rows = np.flatnonzero(ds.obs_image == k)
+        uv, xyz = ds.uv_px[rows], adjusted_xyz(cal, ds, rows)
         res = resect(cal.camera, uv, xyz, np.random.default_rng(seed))
         if not res.success:
             out["failed"].append((ds.image_ids[k], res.status))
@@ -162,7 +199,8 @@ def ours_leave_one_out(init: Initialisation, model: str, held: list[int], seed: 
         out["ids"].append(ds.image_ids[k])
         train = rms(raw_residuals(cal, ds.subset_images(keep)))
         log(
-            f"  {model} without {ds.image_ids[k]} ({n + 1}/{len(held)}): train RMS "
+            f"  {variant_label(model, control_sigma)} without {ds.image_ids[k]} "
+            f"({n + 1}/{len(held)}): train RMS "
             f"{train:.3f} px, held-out RMS {rms(res.residuals_px):.3f} px "
             f"({time.perf_counter() - t0:.1f} s)"
         )
@@ -292,25 +330,30 @@ def cv_leave_one_out(per_view, held, size, flags=_CV_FLAGS, K0=None, select=None
 # --------------------------------------------------------------------------------------
 
 
-def section_ov_plane(models, seed) -> dict:
+def section_ov_plane(variants, seed) -> dict:
     """Train on ov_plane_train, resect ov_plane_test; ours and OpenCV on the same corners."""
     train = load_dataset(DATA / "ov_plane_train.dataset.json")
     test = load_dataset(DATA / "ov_plane_test.dataset.json")
     log("ov_plane: initialising the training set")
     init = initialise(train, seed)
-    test_views = views(test)
+    test_rows = [np.flatnonzero(test.obs_image == k) for k in range(len(test.image_ids))]
     rows, first = [], None
-    for model in models:
+    for model, control_sigma in variants:
         t0 = time.perf_counter()
-        cal = calibrate(init.dataset, options(model, seed), init=init)
-        res = [resect(cal.camera, uv, xyz, np.random.default_rng(seed)) for uv, xyz in test_views]
+        cal = calibrate(init.dataset, options(model, seed, control_sigma), init=init)
+        res = [
+            resect(
+                cal.camera, test.uv_px[m], adjusted_xyz(cal, test, m), np.random.default_rng(seed)
+            )
+            for m in test_rows
+        ]
         r = np.concatenate([x.residuals_px for x in res])
         inc = np.concatenate([x.incidence_deg for x in res])
         below = inc < MAX_INCIDENCE_OPENCV_DEG
         train_inc = np.asarray(cal.extra["observations"]["incidence_deg"])
         train_r = raw_residuals(cal, init.dataset)
         row = {
-            "method": f"ours {model}",
+            "method": variant_label(model, control_sigma),
             "train_rms_all": rms(train_r),
             "train_rms_85": rms(train_r[train_inc < MAX_INCIDENCE_OPENCV_DEG]),
             "test_rms_85": rms(r[below]),
@@ -323,12 +366,13 @@ def section_ov_plane(models, seed) -> dict:
         }
         rows.append(row)
         log(
-            f"ov_plane {model}: train {row['train_rms_all']:.3f} px, test "
+            f"ov_plane {row['method']}: train {row['train_rms_all']:.3f} px, test "
             f"{row['test_rms_all']:.3f} px (all), {row['test_rms_85']:.3f} px (<85 deg) "
             f"({time.perf_counter() - t0:.1f} s)"
         )
         if first is None:
             first = (cal, train_inc, [x.incidence_deg for x in res])
+    test_views = views(test)
     # OpenCV on the corners under 85 deg (selected with our first model's poses)
     cal, train_inc, test_inc = first
     train_views = views(init.dataset)
@@ -370,7 +414,7 @@ def section_ov_plane(models, seed) -> dict:
     return {"rows": rows}
 
 
-def section_leave_one_out(name, dataset, models, max_views, seed) -> dict:
+def section_leave_one_out(name, dataset, variants, max_views, seed) -> dict:
     """All-view RMS and leave-one-view-out held-out RMS: ours and ``cv2.fisheye``."""
     log(f"{name}: initialising {len(dataset.image_ids)} images")
     init = initialise(dataset, seed)
@@ -409,14 +453,15 @@ def section_leave_one_out(name, dataset, models, max_views, seed) -> dict:
         break
     else:
         rows.append({"method": "OpenCV fisheye (KB)", "failed": ["calibrate failed/diverged"]})
-    for model in models:
+    for model, control_sigma in variants:
         t0 = time.perf_counter()
-        cal = calibrate(ds, options(model, seed), init=init)
+        name_v = variant_label(model, control_sigma)
+        cal = calibrate(ds, options(model, seed, control_sigma), init=init)
         all_rms = rms(raw_residuals(cal, ds))
-        log(f"{name} {model}: all views RMS {all_rms:.3f} px; leave-one-out")
-        loo = ours_leave_one_out(init, model, held, seed)
-        rows.append(_loo_row(f"ours {model}", all_rms, loo))
-        log(f"{name} {model}: done ({time.perf_counter() - t0:.1f} s)")
+        log(f"{name} {name_v}: all views RMS {all_rms:.3f} px; leave-one-out")
+        loo = ours_leave_one_out(init, model, held, seed, control_sigma)
+        rows.append(_loo_row(name_v, all_rms, loo))
+        log(f"{name} {name_v}: done ({time.perf_counter() - t0:.1f} s)")
     return {
         "rows": rows,
         "n_views": len(ds.image_ids),
@@ -580,6 +625,13 @@ def main(argv=None) -> int:
         default=["radial+knn"],
         help="one or more models (space or comma separated), e.g. radial+knn brown+knn radial",
     )
+    parser.add_argument(
+        "--control-sigma",
+        nargs="+",
+        default=["none", "0.0005"],
+        help="board variants: 'none' (the board's nominal coordinates are exact) and/or "
+        "sigmas in metres with which the board corners are estimated (default: none 0.0005)",
+    )
     parser.add_argument("--max-views", type=int, default=None, help="views held out per set")
     parser.add_argument("--quick", action="store_true", help="hold out 6 views per set")
     parser.add_argument(
@@ -593,19 +645,29 @@ def main(argv=None) -> int:
     models = [m for text in args.model for m in text.split(",") if m]
     for m in models:
         Model(m)  # ValueError names a bad model
+    sigmas = [
+        None if t.lower() == "none" else float(t)
+        for text in args.control_sigma
+        for t in text.split(",")
+        if t
+    ]
+    variants = [(m, cs) for m in models for cs in sigmas]
     max_views = args.max_views if args.max_views is not None else (6 if args.quick else None)
     sections = set(args.only.split(","))
     if not DATA.exists():
         print(f"real data not available: {DATA} is absent (see ../shared/data/README.md)")
         return 0
-    print(f"hold-out benchmark, models: {', '.join(models)}; seed {args.seed}")
+    print(
+        f"hold-out benchmark, models: {', '.join(models)}; control sigma (m): "
+        f"{', '.join(str(x) for x in sigmas)}; seed {args.seed}"
+    )
     results = {}
     if "ov_plane" in sections:
-        results["ov_plane"] = section_ov_plane(models, args.seed)
+        results["ov_plane"] = section_ov_plane(variants, args.seed)
         print_ov_plane(results["ov_plane"])
     if "opencv" in sections:
         ds = load_dataset(DATA / "opencv_fisheye_left.dataset.json")
-        sec = section_leave_one_out("opencv_fisheye_left", ds, models, max_views, args.seed)
+        sec = section_leave_one_out("opencv_fisheye_left", ds, variants, max_views, args.seed)
         results["opencv_fisheye_left"] = sec
         print_loo(
             "b. opencv_fisheye_left",
@@ -618,7 +680,7 @@ def main(argv=None) -> int:
                 print(f"\n{folder}: images absent, skipped")
                 continue
             ds, dropped = fish_dataset(folder, square)
-            sec = section_leave_one_out(folder, ds, models, max_views, args.seed)
+            sec = section_leave_one_out(folder, ds, variants, max_views, args.seed)
             sec["dropped_duplicates"] = dropped
             results[folder] = sec
             ref = ("py-OCamCalib (12 of 15 images)", OCAMCALIB_FISH1_RMS)

@@ -8,6 +8,7 @@ Subcommands: ``demo``, ``simulate``, ``calibrate``, ``evaluate``, ``detect``
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from pathlib import Path
@@ -46,6 +47,15 @@ def _add_calibration_options(p: argparse.ArgumentParser) -> None:
         default=None,
         help="image noise sigma (px); default: estimated from the residuals",
     )
+    p.add_argument(
+        "--control-sigma",
+        type=float,
+        default=None,
+        metavar="SIGMA",
+        help="estimate the targets marked exact (sigma 0, printed boards) with this standard "
+        "deviation in the dataset's units (e.g. 0.0005 for 0.5 mm): recovers a curled or "
+        "misprinted board; default: keep them exact",
+    )
     p.add_argument("--max-iterations", type=int, default=100)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--quiet", action="store_true", help="no progress lines")
@@ -64,6 +74,7 @@ def _options_from_args(args):
         sigma_px=args.sigma_px,
         max_iterations=args.max_iterations,
         seed=args.seed,
+        control_sigma=args.control_sigma,
     )
 
 
@@ -114,6 +125,13 @@ def cmd_calibrate(args) -> int:
     _print_outliers(calib.extra.get("outliers", []))
     for reason in calib.statistics.get("distrust", []):
         print(f"warning: do not trust this result: {reason}", file=sys.stderr)
+    if args.control_sigma is None and bool((dataset.target_sigma == 0).all()):
+        print(
+            "hint: every target is exact (a printed board?); real boards are rarely flat or "
+            "true to scale to 0.1 mm: try --control-sigma 0.0005 to estimate the board's "
+            "shape (README, 'Printed boards')",
+            file=sys.stderr,
+        )
     return 0 if calib.statistics.get("trusted", calib.statistics["converged"]) else 1
 
 
@@ -272,7 +290,9 @@ def main(argv: list[str] | None = None) -> int:
     -------
     int
         0 success, 1 result not to be trusted, 2 bad input (one ``error: ...``
-        line on standard error, no output file written), 130 interrupted.
+        line on standard error, no output file written), 130 interrupted, 141
+        standard output closed by its reader (e.g. piped to ``head``; files already
+        written are complete, the work after the closed pipe was not done).
     """
     args = build_parser().parse_args(argv)
 
@@ -304,6 +324,15 @@ def main(argv: list[str] | None = None) -> int:
         if not ours or dis.opname[code.co_code[tb.tb_lasti]] != "RAISE_VARARGS":
             raise
         return fail(exc)
+    except BrokenPipeError:
+        # the reader of standard output went away (`... | head`): no message, no traceback
+        # at exit when Python flushes stdout again
+        try:
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, sys.stdout.fileno())
+        except (OSError, ValueError, AttributeError):  # no real file behind sys.stdout
+            pass
+        return 141
     except OSError as exc:  # the output cannot be written (directory, permissions, disc full)
         filename = f"{exc.filename}: " if exc.filename else ""
         print(f"error: {filename}{exc.strerror or exc}", file=sys.stderr)

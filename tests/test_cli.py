@@ -137,3 +137,22 @@ def test_ctrl_c_leaves_the_previous_file_and_says_so(small_room, tmp_path, capsy
     err = capsys.readouterr().err
     assert "interrupted" in err and "previous" in err and str(out) in err
     assert [p.name for p in tmp_path.iterdir()] == ["c.json"]  # no temporary left behind
+
+
+def test_closed_stdout_ends_quietly(tmp_path):
+    """``gtsam-sphere ... | head``: exit 141, no "error: Broken pipe", no traceback."""
+    import subprocess
+    import sys
+
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "gtsam_sphere", "simulate", "--preset", "gopro", "-o",
+         str(tmp_path / "sim")],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+    )
+    proc.stdout.close()  # the reader goes away before the first line
+    err = proc.stderr.read().decode()
+    assert proc.wait() == 141
+    assert "Broken pipe" not in err and "Traceback" not in err, err
+    # the files written before the pipe closed are complete
+    assert (tmp_path / "sim" / "dataset.json").is_file()
