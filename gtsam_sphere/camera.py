@@ -32,6 +32,9 @@ BROWN_TERMS: tuple[str, ...] = ("k1", "k2", "k3", "p1", "p2", "a1", "a2")
 RADIAL_TERMS: tuple[str, ...] = ("g3", "g5", "g7", "g9", "g11", "g13")
 #: normalising angle of the radial mapping's polynomial (rad)
 ALPHA0_RAD = math.pi / 2
+#: a fold of the Brown map farther than this many ``brown_scale_px`` from the principal
+#: point counts as none (tiny terms fold only astronomically far out)
+FOLD_HORIZON = 1e6
 
 
 class Model(enum.StrEnum):
@@ -337,6 +340,175 @@ def sphere_residual(
     return e, J_theta, -c * J_m
 
 
+# -- the Brown map along a line of pixels through the principal point --------------------------
+#
+# Along ``xbar = u * s * d`` (``d`` a unit direction, ``s`` the Brown scale) the radial
+# component of the corrected coordinates ``xbar - brown(xbar)`` is a polynomial in ``u``:
+#
+#     d . (xbar - brown(xbar)) / s = b1 u + b2 u^2 - k1 u^3 - k2 u^5 - k3 u^7
+#     b1 = 1 - a1 dx^2 - a2 dx dy,   b2 = -3 (p1 dx + p2 dy)
+#
+# (the tangential component holds only p1, p2, a2). A lens seeing past 90 deg is
+# represented by this polynomial rising to a maximum (the fold, incidence 90 deg) and
+# falling beyond it (the back half of the image sphere, whose ideal radius c sin(alpha)
+# shrinks while the image radius keeps growing).
+
+
+def _brown_line_coeffs(brown: dict[str, float], d: np.ndarray) -> np.ndarray:
+    """Ascending coefficients (N, 8) of ``d . (xbar - brown(xbar)) / s`` in ``u = |xbar| / s``."""
+    g = {t: float(brown.get(t, 0.0)) for t in BROWN_TERMS}
+    dx, dy = d[:, 0], d[:, 1]
+    out = np.zeros((len(d), 8))
+    out[:, 1] = 1.0 - g["a1"] * dx * dx - g["a2"] * dx * dy
+    out[:, 2] = -3.0 * (g["p1"] * dx + g["p2"] * dy)
+    out[:, 3] = -g["k1"]
+    out[:, 5] = -g["k2"]
+    out[:, 7] = -g["k3"]
+    return out
+
+
+def _poly_eval(coeffs: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """Polynomials with ascending coefficients (N, K) at ``u`` (N,) (Horner)."""
+    out = np.zeros(len(coeffs))
+    for k in range(coeffs.shape[1] - 1, -1, -1):
+        out = out * u + coeffs[:, k]
+    return out
+
+
+def _poly_derivative(coeffs: np.ndarray) -> np.ndarray:
+    """Ascending coefficients (N, K - 1) of the derivatives of polynomials (N, K)."""
+    return coeffs[:, 1:] * np.arange(1, coeffs.shape[1])
+
+
+def _positive_real_roots(coeffs: np.ndarray) -> np.ndarray:
+    """Positive real roots of polynomials (N, K), ascending and padded with ``inf``, (N, K - 1).
+
+    Companion-matrix eigenvalues; a near-double root (which rounding splits
+    into a complex pair) counts as real, so callers check the sign changes.
+    """
+    n_rows, k = coeffs.shape
+    out = np.full((n_rows, max(k - 1, 0)), np.inf)
+    if k < 2 or n_rows == 0:
+        return out
+    # a leading term negligible up to FOLD_HORIZON is dropped (it would only add roots beyond
+    # it, and its companion matrix would overflow)
+    reach = FOLD_HORIZON ** np.arange(k)
+    with np.errstate(over="ignore"):
+        lower = np.abs(coeffs[:, -1]) * reach[-1] <= 1e-18 * np.max(
+            np.abs(coeffs[:, :-1]) * reach[:-1], axis=1
+        )
+    if lower.any():
+        sub = _positive_real_roots(coeffs[lower, :-1])
+        out[np.flatnonzero(lower)[:, None], np.arange(sub.shape[1])[None]] = sub
+    full = ~lower
+    if not full.any():
+        return out
+    c = coeffs[full]
+    deg = k - 1
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        if deg == 1:
+            roots = (-c[:, 0] / c[:, 1])[:, None]
+            ok = np.isfinite(roots) & (roots > 0)
+        else:
+            comp = np.zeros((len(c), deg, deg))
+            comp[:, 1:, :-1] = np.eye(deg - 1)
+            comp[:, :, -1] = -c[:, :-1] / c[:, -1:]
+            z = np.linalg.eigvals(comp)
+            roots = z.real
+            ok = (np.abs(z.imag) <= 1e-6 * (1.0 + np.abs(z))) & (roots > 0)
+    out[full] = np.sort(np.where(ok, roots, np.inf), axis=1)
+    return out
+
+
+def _turning_points(coeffs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """First maximum ``u_f`` and the following minimum ``u_m`` (``inf`` if none) on ``u > 0``.
+
+    For polynomials (N, K) increasing at ``u = 0``: the polynomial increases on
+    ``[0, u_f]`` and decreases on ``[u_f, u_m]``. A maximum beyond
+    ``FOLD_HORIZON`` counts as none.
+    """
+    dg = _poly_derivative(coeffs)
+    cand = _positive_real_roots(dg)
+    n_rows, m = cand.shape
+    inf = np.full(n_rows, np.inf)
+    if m == 0:
+        return inf, inf.copy()
+    # refine the roots (companion eigenvalues lose digits near a double root)
+    ddg = _poly_derivative(dg)
+    for _ in range(2):
+        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+            fin = np.where(np.isfinite(cand), cand, 0.0)
+            new = np.stack(
+                [
+                    fin[:, j] - _poly_eval(dg, fin[:, j]) / _poly_eval(ddg, fin[:, j])
+                    for j in range(m)
+                ],
+                1,
+            )
+            close = np.isfinite(new) & (np.abs(new - cand) <= 1e-3 * cand)
+        cand = np.where(close, new, cand)
+    nxt = np.concatenate([cand[:, 1:], np.full((n_rows, 1), np.inf)], 1)
+    with np.errstate(invalid="ignore", over="ignore"):
+        probe = np.where(np.isfinite(nxt), 0.5 * (cand + nxt), 2.0 * cand + 1.0)
+    finite = np.isfinite(probe)
+    slope = np.zeros((n_rows, m))
+    for j in range(m):
+        slope[finite[:, j], j] = _poly_eval(dg[finite[:, j]], probe[finite[:, j], j])
+    rows = np.arange(n_rows)
+    down = finite & (slope < 0)
+    has = down.any(1)
+    kf = np.argmax(down, 1)
+    u_f = np.where(has, cand[rows, kf], np.inf)
+    u_f[u_f > FOLD_HORIZON] = np.inf
+    up = finite & (slope > 0) & (np.arange(m)[None] > kf[:, None]) & has[:, None]
+    u_m = np.where(up.any(1), cand[rows, np.argmax(up, 1)], np.inf)
+    return u_f, u_m
+
+
+def _solve_monotone(
+    coeffs: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np.ndarray, sign: np.ndarray
+) -> np.ndarray:
+    """Root of ``poly(u) = target`` on ``[lo, hi]`` where ``sign * poly`` increases; NaN if none.
+
+    ``hi`` may be ``inf`` (the polynomial is then monotone up to infinity).
+    Safeguarded Newton (bisection when a step leaves the bracket).
+    """
+    lo = np.array(lo, float)
+    hi = np.array(hi, float)
+    dg = _poly_derivative(coeffs)
+
+    def h(u):
+        with np.errstate(invalid="ignore", over="ignore"):
+            return sign * (_poly_eval(coeffs, u) - target)
+
+    open_hi = ~np.isfinite(hi)
+    trial = np.where(open_hi, np.maximum(2.0 * lo, lo + 1.0), hi)
+    for _ in range(64):
+        grow = open_hi & ~(h(trial) >= 0)
+        if not grow.any():
+            break
+        trial[grow] *= 2.0
+    hi = np.where(open_hi, trial, hi)
+    with np.errstate(invalid="ignore"):
+        has = np.isfinite(lo) & np.isfinite(hi) & (h(lo) <= 0) & (h(hi) >= 0)
+    u = np.where(has, 0.5 * (lo + hi), np.nan)
+    lo, hi = np.where(has, lo, np.nan), np.where(has, hi, np.nan)
+    for _ in range(200):
+        f = h(u)
+        with np.errstate(invalid="ignore"):
+            lo = np.where(f <= 0, u, lo)
+            hi = np.where(f >= 0, u, hi)
+            with np.errstate(divide="ignore", over="ignore"):
+                step = u - f / (sign * _poly_eval(dg, u))
+            inside = np.isfinite(step) & (step > lo) & (step < hi)
+            new = np.where(inside, step, 0.5 * (lo + hi))
+            moving = np.abs(new - u) > 4e-16 * np.abs(new)
+        u = new
+        if not np.any(moving & has):
+            break
+    return u
+
+
 @dataclass
 class SphereCamera:
     """A calibrated spherical camera: project and unproject over the whole sphere.
@@ -485,6 +657,21 @@ class SphereCamera:
     ) -> np.ndarray:
         """Project camera-frame points to raw pixels.
 
+        The pixel returned satisfies the adjustment's residual
+        (:func:`sphere_residual`): ``ideal_from_pixels(uv) = ideal_from_points(P)``.
+        With the sphere mapping and Brown terms that equation has two
+        solutions for a lens seeing past 90 deg: the Brown map ``w -> w - pp -
+        brown(w - pp)`` (``w`` the corrected pixel) rises to a fold (the
+        image of 90 deg) and falls beyond it, where the image radius keeps
+        growing while the ideal radius ``c sin(alpha)`` shrinks. A ray in
+        front of the camera (``z >= 0``) gets the solution inside the fold
+        (where that map preserves orientation, :meth:`pixel_hemisphere`
+        ``+1``), a ray behind it (``z < 0``) the one beyond the fold
+        (``-1``). Where the map does not fold along the ray's azimuth (no
+        Brown terms, or terms that do not compress the rim), the sphere's own
+        two-to-one holds: a ray behind the camera shares the pixel of its
+        mirror image in front (``unproject`` then needs ``hemisphere=-1``).
+
         Parameters
         ----------
         points_cam : ndarray, shape (N, 3)
@@ -492,17 +679,29 @@ class SphereCamera:
             direction, including behind the camera.
         max_iterations, tol_px
             Inversion of the measurement corrections: Newton steps on the
-            Brown part (its exact Jacobian) with the learned correction held
-            at the current estimate (a fixed-point step). This converges when
-            the learned correction changes by less than 1 px per px
-            (Lipschitz constant < 1) and the Brown map ``uv -> uv - brown`` is
-            invertible over the image, true of every calibrated lens whose
-            corrections do not fold the image.
+            Brown part (its exact Jacobian; where they do not reach the
+            ray's side of the fold, a bracketed solve along the ray's
+            azimuth and Newton steps that stay on that side), then the
+            learned correction as a fixed point ``uv = w + learned(uv)``,
+            which converges when the learned correction changes by less than
+            1 px per px (Lipschitz constant < 1).
 
         Returns
         -------
         uv_px : ndarray, shape (N, 2)
-            NaN for the perspective centre itself (``|P| = 0``).
+            NaN where the model has no pixel for the point:
+
+            - the perspective centre itself (``|P| = 0``);
+            - sphere mapping with Brown terms, a ray within
+              :meth:`fold_profile` ``gap_deg`` of 90 deg on an azimuth where
+              the fold's ideal radius stays below ``c``: the residual has no
+              zero there (the 90 deg gap, see :meth:`fold_profile`);
+            - a ray behind the camera that no pixel beyond the fold reaches:
+              the Brown polynomial turns up again first, or, close to the
+              antipode of the axis, where the back branch's image shrinks to
+              a point, decentering moves that point aside. The antipode itself
+              (``P[:2] = 0``, ``z < 0``) is NaN whenever the map folds: every
+              azimuth meets there.
         """
         p = check_points_cam(points_cam)
         with np.errstate(invalid="ignore", divide="ignore"):
@@ -511,20 +710,11 @@ class SphereCamera:
         uv = pp + ideal
         if not self.brown and self.correction is None:
             return uv
-        # 1. the corrected pixel w: w - pp - brown(w - pp) = ideal (Newton, exact Jacobian)
+        # 1. the corrected pixel w: w - pp - brown(w - pp) = ideal, on the ray's side of the fold
         w = uv
         if self.brown:
-            for _ in range(max_iterations):
-                xbar = w - pp
-                delta, J, _ = brown_distortion(
-                    xbar, self.brown, self.brown_scale_px, jacobians=True
-                )
-                f = xbar - delta - ideal
-                A = np.eye(2)[None] - J
-                step = np.linalg.solve(A, f[..., None])[..., 0]
-                w = w - step
-                if np.all(~np.isfinite(step) | (np.abs(step) < tol_px)):
-                    break
+            back = p[:, 2] < 0 if self.radial is None else np.zeros(len(p), bool)
+            w = self._invert_brown(ideal, back, max_iterations, tol_px)
         if self.correction is None:
             return w
         # 2. the raw pixel: uv - learned(uv) = w (fixed point)
@@ -537,6 +727,208 @@ class SphereCamera:
                 break
         return uv
 
+    # -- inversion of the Brown map --------------------------------------------------------------
+
+    def _brown_map(self, w: np.ndarray, ideal: np.ndarray):
+        """Residual ``w - pp - brown(w - pp) - ideal`` (N, 2), Jacobian entries, determinant."""
+        xbar = w - self.principal_point_px
+        with np.errstate(invalid="ignore", over="ignore"):
+            delta, J, _ = brown_distortion(xbar, self.brown, self.brown_scale_px, jacobians=True)
+            f = xbar - delta - ideal
+            a, b = 1.0 - J[:, 0, 0], -J[:, 0, 1]
+            c, d = -J[:, 1, 0], 1.0 - J[:, 1, 1]
+            det = a * d - b * c
+        return f, (a, b, c, d), det
+
+    @staticmethod
+    def _newton_step(f: np.ndarray, A: tuple, det: np.ndarray) -> np.ndarray:
+        """``A^-1 f`` for 2x2 matrices given by entries (NaN where singular)."""
+        a, b, c, d = A
+        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+            return (
+                np.column_stack([d * f[:, 0] - b * f[:, 1], a * f[:, 1] - c * f[:, 0]])
+                / det[:, None]
+            )
+
+    def _brown_tolerance(self, w: np.ndarray, ideal: np.ndarray) -> np.ndarray:
+        """Accepted residual (px) of the Brown inversion: 1e-11 of the coordinates involved."""
+        with np.errstate(invalid="ignore", over="ignore"):
+            size = np.abs(w - self.principal_point_px).max(1) + np.abs(ideal).max(1)
+        return 1e-11 * (size + self.c)
+
+    def _fold_free_radius(self) -> float:
+        """Radius ``u`` (units of ``brown_scale_px``) inside which the Brown map cannot fold.
+
+        A lower bound over all azimuths of the first maximum of
+        :func:`_brown_line_coeffs`' polynomial: ``inf`` when no azimuth folds
+        within ``FOLD_HORIZON``.
+        """
+        g = {t: float(self.brown.get(t, 0.0)) for t in BROWN_TERMS}
+        b1 = 1.0 - abs(g["a1"]) - 0.5 * abs(g["a2"])
+        if b1 <= 0:
+            return 0.0
+        pos = [max(g["k1"], 0.0), max(g["k2"], 0.0), max(g["k3"], 0.0)]
+        p = math.hypot(g["p1"], g["p2"])
+        if p == 0 and not any(pos):
+            return math.inf
+
+        def slope(u: float) -> float:  # a lower bound of the derivative on every azimuth
+            return b1 - 6 * p * u - 3 * pos[0] * u**2 - 5 * pos[1] * u**4 - 7 * pos[2] * u**6
+
+        if slope(FOLD_HORIZON) > 0:
+            return math.inf
+        lo, hi = 0.0, 1.0
+        while slope(hi) > 0:
+            lo, hi = hi, 2 * hi
+        for _ in range(60):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if slope(mid) > 0 else (lo, mid)
+        return lo
+
+    def _invert_brown(
+        self, ideal: np.ndarray, back: np.ndarray, max_iterations: int, tol_px: float
+    ) -> np.ndarray:
+        """Corrected pixels ``w`` (N, 2) with ``w - pp - brown(w - pp) = ideal``, NaN if none.
+
+        ``back`` marks rays behind the camera: they get the solution beyond
+        the fold where the map folds along their azimuth, else the front one.
+        """
+        pp = self.principal_point_px
+        s = self.brown_scale_px
+        n = len(ideal)
+        u_free = self._fold_free_radius()
+        # plain Newton from the ideal point: the front solution of almost every ray; a ray
+        # behind the camera keeps it only if the map folds nowhere (its mirror's pixel)
+        plain = np.flatnonzero(np.all(np.isfinite(ideal), axis=1) & (~back | math.isinf(u_free)))
+        w0 = pp + ideal[plain]
+        active = np.arange(len(plain))
+        for _ in range(max_iterations):
+            if len(active) == 0:
+                break
+            f, A, det = self._brown_map(w0[active], ideal[plain[active]])
+            step = self._newton_step(f, A, det)
+            w0[active] -= step
+            active = active[np.any(np.abs(step) >= tol_px, axis=1)]
+        f, _, det = self._brown_map(w0, ideal[plain])
+        with np.errstate(invalid="ignore"):
+            good = (
+                (np.linalg.norm(f, axis=1) <= self._brown_tolerance(w0, ideal[plain]))
+                & (det > 0)
+                & (np.linalg.norm(w0 - pp, axis=1) < u_free * s)
+            )
+        w = np.full((n, 2), np.nan)
+        w[plain[good]] = w0[good]
+        done = np.zeros(n, bool)
+        done[plain[good]] = True
+        rest = np.flatnonzero(~done & np.all(np.isfinite(ideal), axis=1))
+        if len(rest):
+            w[rest] = self._invert_brown_along_azimuth(
+                ideal[rest], back[rest], max_iterations, tol_px
+            )
+        return w
+
+    def _invert_brown_along_azimuth(
+        self, ideal: np.ndarray, back: np.ndarray, max_iterations: int, tol_px: float
+    ) -> np.ndarray:
+        """The robust inversion: a bracketed solve along the azimuth, then 2-D Newton on one side.
+
+        Along the line of pixels in the direction of the ideal point the
+        radial part of the map is a polynomial (:func:`_brown_line_coeffs`):
+        increasing up to its first maximum ``u_f`` (the fold), decreasing to
+        the next minimum ``u_m``. The front solution lies in ``[0, u_f]``, the
+        back one in ``[u_f, u_m]``; Newton steps (with the decentering and
+        affinity terms) then refine it without crossing the fold (the sign of
+        the Jacobian determinant is kept).
+        """
+        pp = self.principal_point_px
+        s = self.brown_scale_px
+        radius = np.linalg.norm(ideal, axis=1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            d = np.where(radius[:, None] > 0, ideal / radius[:, None], np.array([1.0, 0.0]))
+        coeffs = _brown_line_coeffs(self.brown, d)
+        u_f, u_m = _turning_points(coeffs)
+        beyond = back & np.isfinite(u_f)  # behind the camera and the map folds on this azimuth
+        lo = np.where(beyond, u_f, 0.0)
+        hi = np.where(beyond, u_m, u_f)
+        sign = np.where(beyond, -1.0, 1.0)
+        u = _solve_monotone(coeffs, radius / s, lo, hi, sign)
+        # no 1-D solution: start at the fold; the 2-D fold differs slightly from the radial
+        # maximum (decentering), so Newton may still find a solution on the right side
+        u = np.where(np.isnan(u) & np.isfinite(u_f), u_f, u)
+        # a start between the radial maximum and the 2-D fold: move it to the right side
+        # (outwards for the back, inwards for the front)
+        nudge = 1e-9 * np.maximum(u, 1e-300)
+        for _ in range(24):  # up to 1e-2 u
+            _, _, det = self._brown_map(pp + (s * u)[:, None] * d, ideal)
+            wrong = np.isfinite(u) & (np.sign(det) != sign)
+            if not wrong.any():
+                break
+            u = np.where(wrong, np.maximum(u - sign * nudge, 0.0), u)
+            nudge = np.where(wrong, 2.0 * nudge, nudge)
+        w = pp + (s * u)[:, None] * d
+        w = self._newton_on_one_side(w, ideal, sign, max_iterations, tol_px)
+        f, _, det = self._brown_map(w, ideal)
+        with np.errstate(invalid="ignore"):
+            ok = (
+                (np.linalg.norm(f, axis=1) <= self._brown_tolerance(w, ideal))
+                & (np.sign(det) == sign)
+                & (coeffs[:, 1] > 0)
+                & ~(beyond & (radius == 0))  # the antipode of the axis: every azimuth meets
+            )
+        w[~ok] = np.nan
+        return w
+
+    def _newton_on_one_side(
+        self,
+        w: np.ndarray,
+        ideal: np.ndarray,
+        sign: np.ndarray,
+        max_iterations: int,
+        tol_px: float,
+    ) -> np.ndarray:
+        """Newton on the Brown map from ``w``, halving steps that cross the fold or do not descend.
+
+        ``sign`` (N,) is the side: the sign of the map's Jacobian determinant
+        to keep. Stops where no halved step reduces the residual or the
+        step falls below ``tol_px``.
+        """
+        w = w.copy()
+        f, A, det = self._brown_map(w, ideal)
+        active = np.flatnonzero(np.all(np.isfinite(w), axis=1))
+        for _ in range(max_iterations + 10):
+            if len(active) == 0:
+                break
+            sub_f = f[active]
+            step = self._newton_step(sub_f, tuple(x[active] for x in A), det[active])
+            norm_f = np.linalg.norm(sub_f, axis=1)
+            lam = np.ones(len(active))
+            accepted = np.zeros(len(active), bool)
+            new_w = w[active].copy()
+            for _ in range(40):
+                todo = np.flatnonzero(~accepted & np.all(np.isfinite(step), axis=1))
+                if len(todo) == 0:
+                    break
+                trial = w[active[todo]] - lam[todo, None] * step[todo]
+                f_t, _, det_t = self._brown_map(trial, ideal[active[todo]])
+                with np.errstate(invalid="ignore"):
+                    ok = (np.sign(det_t) == sign[active[todo]]) & (
+                        np.linalg.norm(f_t, axis=1) < norm_f[todo]
+                    )
+                accepted[todo[ok]] = True
+                new_w[todo[ok]] = trial[ok]
+                lam[todo[~ok]] *= 0.5
+            moved = accepted & np.any(np.abs(new_w - w[active]) > tol_px, axis=1)
+            w[active] = new_w
+            if moved.any():
+                idx = active[moved]
+                f_new, A_new, det_new = self._brown_map(w[idx], ideal[idx])
+                f[idx] = f_new
+                det[idx] = det_new
+                for x, y in zip(A, A_new):
+                    x[idx] = y
+            active = active[moved]
+        return w
+
     def max_alpha_rad(self) -> float:
         """Largest incidence angle (rad) up to which the radial mapping increases (<= pi)."""
         coeffs = self._radial_coeffs()
@@ -546,6 +938,112 @@ class SphereCamera:
         _, dg, _ = radial_g(grid, coeffs, derivative=True)
         bad = np.flatnonzero(dg <= 0)
         return float(grid[bad[0] - 1]) if len(bad) else math.pi
+
+    def pixel_hemisphere(self, uv_px: np.ndarray) -> np.ndarray:
+        """The half of the image sphere on which :meth:`project` puts each pixel's ray.
+
+        Sphere mapping with Brown terms: ``-1`` (back, beyond the fold) where
+        the Brown map ``w -> w - pp - brown(w - pp)`` of the corrected pixel
+        ``w = uv - learned(uv)`` reverses orientation (negative Jacobian
+        determinant), ``+1`` (front) elsewhere, NaN where that map has
+        carried the pixel past the antipode of the axis (its ideal point
+        points away from the pixel: no ray). ``unproject(uv,
+        hemisphere=pixel_hemisphere(uv))`` then inverts ``project`` on both
+        sides of the fold, as long as the Brown polynomial turns once inside
+        the image (:meth:`fold_profile`). Without Brown terms, and for the
+        radial mapping, all ``+1``.
+
+        Parameters
+        ----------
+        uv_px : ndarray, shape (N, 2)
+            Raw pixels.
+
+        Returns
+        -------
+        hemisphere : ndarray, shape (N,)
+            ``+1.0``, ``-1.0`` or NaN.
+        """
+        uv = check_uv(uv_px)
+        h = np.ones(len(uv))
+        if self.radial is not None or not self.brown:
+            return h
+        w = uv if self.correction is None else uv - self.correction.predict(uv)
+        xbar = w - self.principal_point_px
+        f, _, det = self._brown_map(w, np.zeros_like(w))
+        with np.errstate(invalid="ignore", over="ignore"):
+            h[det < 0] = -1.0
+            h[np.sum(f * xbar, axis=1) < 0] = np.nan
+        return h
+
+    def fold_profile(self, azimuth_rad: np.ndarray) -> dict[str, np.ndarray]:
+        """Where the sphere + Brown model folds at 90 deg, and the gap it leaves there.
+
+        On the line of corrected pixels from the principal point in
+        direction ``azimuth_rad`` the ideal radius rises to a maximum at the
+        fold and falls beyond it (a lens seeing past 90 deg). The adjustment
+        does not tie that maximum to ``c`` (the sphere's 90 deg): near 90 deg
+        the ideal radius ``c sin(alpha)`` changes by ``c (1 - cos(d_alpha))``,
+        about 0.005 px at 0.3 deg, far below the noise, so a fit leaves it a
+        few 1e-5 of ``c`` off, differently on each azimuth (decentering
+        ``p1, p2`` tilts it). Where it stays below ``c`` the rays within
+        ``gap_deg`` of 90 deg (both sides) have no pixel (:meth:`project`
+        gives NaN; the pixels on either side of the gap are a fraction of a
+        pixel apart); where it exceeds ``c`` the ``no_ray_px`` of pixels
+        around the fold have no ray (:meth:`unproject` gives NaN) and
+        :meth:`project` jumps across them at 90 deg. Either way the rays of
+        the pixels near the fold are off by up to about ``gap_deg`` (for
+        ``ideal_max > 1``, ``degrees(arccos(1 / ideal_max))``), decaying
+        away from 90 deg: the sphere mapping cannot place rays near 90 deg
+        better than ``sqrt(2 |1 - ideal_max|)`` rad; the radial mapping has
+        no such weakness. Evaluated on the radial component (exact for
+        ``k1-k3``, ``a1``; ``p1, p2, a2`` also move the ideal point sideways,
+        which changes its radius by the square of that shift).
+
+        Parameters
+        ----------
+        azimuth_rad : ndarray, shape (N,)
+            Directions in the image from the principal point (``atan2(dv, du)``).
+
+        Returns
+        -------
+        profile : dict of ndarray, shape (N,)
+            ``radius_px``: distance of the fold from the principal point in
+            corrected pixels (``inf`` where the map does not fold);
+            ``ideal_max``: the largest ideal radius on the azimuth, relative
+            to ``c`` (``inf`` without a fold); ``gap_deg``: half-width of the
+            band of rays around 90 deg without a pixel (0 where
+            ``ideal_max >= 1``); ``no_ray_px``: width of the band of pixels
+            without a ray across the fold (0 where ``ideal_max <= 1``).
+        """
+        phi = np.atleast_1d(np.asarray(azimuth_rad, float))
+        n = len(phi)
+        out = {
+            "radius_px": np.full(n, np.inf),
+            "ideal_max": np.full(n, np.inf),
+            "gap_deg": np.zeros(n),
+            "no_ray_px": np.zeros(n),
+        }
+        if self.radial is not None or not self.brown:
+            return out
+        s = self.brown_scale_px
+        d = np.column_stack([np.cos(phi), np.sin(phi)])
+        coeffs = _brown_line_coeffs(self.brown, d)
+        u_f, u_m = _turning_points(coeffs)
+        fold = np.isfinite(u_f)
+        peak = np.full(n, np.inf)
+        peak[fold] = _poly_eval(coeffs[fold], u_f[fold]) * s / self.c
+        out["radius_px"] = s * u_f
+        out["ideal_max"] = peak
+        below = fold & (peak < 1)
+        out["gap_deg"][below] = np.degrees(np.arccos(peak[below]))
+        above = fold & (peak > 1)
+        if above.any():
+            target = np.full(above.sum(), self.c / s)
+            c_above = coeffs[above]
+            u_in = _solve_monotone(c_above, target, np.zeros(len(target)), u_f[above], 1.0)
+            u_out = _solve_monotone(c_above, target, u_f[above], u_m[above], -1.0)
+            out["no_ray_px"][above] = s * (u_out - u_in)
+        return out
 
     def unproject(self, uv_px: np.ndarray, hemisphere: float | np.ndarray = 1.0) -> np.ndarray:
         """Unit rays in the camera frame for raw pixels.
@@ -557,8 +1055,11 @@ class SphereCamera:
             Sphere mapping only: ``+1`` front half of the image sphere
             (incidence below 90 deg), ``-1`` back half. The sphere's two
             halves share the image disc, so a pixel alone cannot tell them
-            apart; see ``docs/conventions.md``. The radial mapping is
-            one-to-one up to :meth:`max_alpha_rad` and ignores it.
+            apart; see ``docs/conventions.md``. With Brown terms that fold
+            the image (a lens past 180 deg), :meth:`pixel_hemisphere` tells
+            which side of the fold a pixel is on. NaN gives a NaN ray. The
+            radial mapping is one-to-one up to :meth:`max_alpha_rad` and
+            ignores it.
 
         Returns
         -------
@@ -576,12 +1077,10 @@ class SphereCamera:
             with np.errstate(invalid="ignore", over="ignore"):
                 rho2 = (m**2).sum(1)
                 # the rim (90 deg) rounds to rho2 = 1 + eps: clip inside the tolerance
-                z = np.sqrt(np.clip(1.0 - rho2, 0.0, None)) * np.sign(
-                    np.asarray(hemisphere, float)
-                )
+                z = np.sqrt(np.clip(1.0 - rho2, 0.0, None)) * np.sign(np.asarray(hemisphere, float))
             rays = np.column_stack([m, z * np.ones(len(m))])
             with np.errstate(invalid="ignore"):
-                rays[~(rho2 <= 1.0 + 1e-12)] = np.nan
+                rays[~(rho2 <= 1.0 + 1e-12) | np.isnan(rays[:, 2])] = np.nan
             return rays
         with np.errstate(over="ignore"):
             r = np.hypot(m[:, 0], m[:, 1])

@@ -148,15 +148,6 @@ def pixel_rays(camera, uv_px: np.ndarray, hemisphere: np.ndarray | None = None) 
     return np.asarray(camera.unproject(uv, hemisphere=hemisphere), float).reshape(-1, 3)
 
 
-def _ideal_of_rays(camera, rays: np.ndarray) -> np.ndarray:
-    """Ideal image points (px, relative to the principal point) of camera-frame rays (N, 3)."""
-    if hasattr(camera, "ideal_from_points"):
-        return np.asarray(camera.ideal_from_points(rays), float)
-    norm = np.linalg.norm(rays, axis=1)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return camera.c * rays[:, :2] / norm[:, None]
-
-
 def _angle_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Angle (rad) between rows of two (N, 3) arrays; NaN where either is not finite."""
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -231,16 +222,12 @@ def project_rays(
 ) -> np.ndarray:
     """Raw pixels of camera-frame rays, NaN where the camera has no pixel for the ray.
 
-    A pixel is accepted when its own ray (:func:`pixel_rays`) comes back to
-    the input ray within ``tol_px / c`` rad (and, with ``inside_image``, it
-    lies in the image). ``camera.project`` is tried first (few iterations,
-    then more for the rays that need them). Rays still failing (behind the
-    fold of a lens seeing past 90 deg, where ``camera.project`` lands on the
-    front pre-image) are refined by Newton steps on ``ideal_from_pixels(uv) =
-    ideal(ray)`` from a seed on the right side of the fold (``seed_uv_px``,
-    else the pixel of the nearest ray of a :class:`RayGrid`), then checked
-    again. With a grid, rays wider than its widest ray by more than 2 deg
-    are not tried at all.
+    The pixels of ``camera.project`` (which puts a ray behind the camera
+    beyond the fold of a lens seeing past 90 deg), each accepted when its own
+    ray (:func:`pixel_rays`) comes back to the input ray within ``tol_px /
+    c`` rad (and, with ``inside_image``, it lies in the image). Without
+    ``seed_uv_px``, rays wider than the widest ray of a :class:`RayGrid` by
+    more than 2 deg are not tried at all.
 
     Parameters
     ----------
@@ -248,7 +235,9 @@ def project_rays(
     rays : ndarray, shape (N, 3)
         Camera frame (x right, y down, z forward); need not be unit.
     seed_uv_px : ndarray, shape (N, 2), optional
-        Starting pixels for the rays ``camera.project`` gets wrong.
+        Not needed any more (``camera.project`` finds the pixel on the
+        ray's side of the fold); kept for callers. Given, no grid is built
+        and every ray is tried.
     tol_px : float
         Round-trip tolerance in pixels at the scale ``c`` (px per rad).
     inside_image : bool
@@ -290,65 +279,11 @@ def project_rays(
             todo = todo[incidence_deg(rays[todo]) <= grid.max_incidence_deg + 2.0]
         else:
             todo = todo[:0]
-    good = np.zeros(n, bool)
-    for iterations in (12,):
-        if len(todo) == 0:
-            break
+    if len(todo):
         with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
-            trial = np.asarray(
-                camera.project(rays[todo], max_iterations=iterations), float
-            ).reshape(-1, 2)
+            trial = np.asarray(camera.project(rays[todo]), float).reshape(-1, 2)
         ok = accepted(trial, todo)
         uv[todo[ok]] = trial[ok]
-        good[todo[ok]] = True
-        todo = todo[~ok]
-    if len(todo):
-        if seed_uv_px is not None:
-            seeds = np.asarray(seed_uv_px, float).reshape(-1, 2)[todo]
-        else:
-            seeds = grid.nearest(rays[todo])
-        has_seed = np.all(np.isfinite(seeds), axis=1)
-        todo, seeds = todo[has_seed], seeds[has_seed]
-        if len(todo):
-            refined = _newton_pixels(camera, rays[todo], seeds)
-            ok = accepted(refined, todo)
-            uv[todo[ok]] = refined[ok]
-            good[todo[ok]] = True
-    uv[~good] = np.nan
-    return uv
-
-
-def _newton_pixels(camera, rays: np.ndarray, seeds: np.ndarray, iterations: int = 30):
-    """Newton on ``ideal_from_pixels(uv) = ideal(ray)`` from ``seeds`` (finite differences).
-
-    Only the rays not yet converged (step above 1e-9 px) are iterated.
-    """
-    target = _ideal_of_rays(camera, rays)
-    uv = np.array(seeds, float)
-    h = 0.25
-    ex, ey = np.array([h, 0.0]), np.array([0.0, h])
-    limit = 0.1 * max(camera.width, camera.height)
-    active = np.flatnonzero(np.all(np.isfinite(uv), axis=1) & np.all(np.isfinite(target), axis=1))
-    for _ in range(iterations):
-        if len(active) == 0:
-            break
-        p = uv[active]
-        f = camera.ideal_from_pixels(p) - target[active]
-        jx = (camera.ideal_from_pixels(p + ex) - camera.ideal_from_pixels(p - ex)) / (2 * h)
-        jy = (camera.ideal_from_pixels(p + ey) - camera.ideal_from_pixels(p - ey)) / (2 * h)
-        det = jx[:, 0] * jy[:, 1] - jy[:, 0] * jx[:, 1]
-        with np.errstate(invalid="ignore", divide="ignore"):
-            step = np.column_stack(
-                [
-                    (jy[:, 1] * f[:, 0] - jy[:, 0] * f[:, 1]) / det,
-                    (-jx[:, 1] * f[:, 0] + jx[:, 0] * f[:, 1]) / det,
-                ]
-            )
-            norm = np.linalg.norm(step, axis=1)
-            # damp steps that would jump across the image (a flat Jacobian near the fold)
-            step *= np.where(norm > limit, limit / norm, 1.0)[:, None]
-        uv[active] = p - np.nan_to_num(step)
-        active = active[np.isfinite(norm) & (norm >= 1e-9)]
     return uv
 
 
