@@ -21,8 +21,10 @@
     Mean residual vector per grid cell: the systematic error left.
 ``uncertainty.png``
     Projection uncertainty over the image (px) propagated from the
-    covariance of the intrinsics, plus the local term of a learned kNN
-    correction (:mod:`gtsam_sphere.uncertainty`).
+    covariance of the intrinsics, after the camera rotation that best
+    re-aligns the image over the observations (the part of the intrinsics'
+    error the poses absorb is not counted), plus the local term of a learned
+    kNN correction (:mod:`gtsam_sphere.uncertainty`).
 ``report.md`` and ``index.html``
     The same tables and images as a Markdown page and an HTML page.
 
@@ -57,8 +59,9 @@ PLOTS: dict[str, str] = {
     "coverage": "Image coverage: observations, principal point, 90 deg incidence curve and "
     "the model's measurement correction field.",
     "residual_field": "Mean residual vector per image cell: systematic error left by the model.",
-    "uncertainty": "Projection uncertainty: standard deviation (px) of the pixel of a fixed ray, "
-    "propagated from the covariance of the intrinsics (plus the kNN correction's local term).",
+    "uncertainty": "Projection uncertainty: standard deviation (px) of the pixel of a ray at "
+    "infinity, propagated from the covariance of the intrinsics after the camera rotation that "
+    "best re-aligns the image over the observations (plus the kNN correction's local term).",
 }
 
 #: Observations with a robust weight below this are drawn as outliers.
@@ -760,8 +763,16 @@ def plot_target_shifts(calib: Calibration, path: Path, label: str = "") -> Path 
         cb.set_label(f"out-of-plane shift ({unit})")
         extent = float(np.ptp(xy, axis=0).max()) or 1.0
         gain = 0.05 * extent / max(float(np.max(np.linalg.norm(d_in, axis=1))), 1e-12)
-        ax.quiver(xy[:, 0], xy[:, 1], d_in[:, 0] * gain, d_in[:, 1] * gain,
-                  angles="xy", scale_units="xy", scale=1, width=0.004)
+        ax.quiver(
+            xy[:, 0],
+            xy[:, 1],
+            d_in[:, 0] * gain,
+            d_in[:, 1] * gain,
+            angles="xy",
+            scale_units="xy",
+            scale=1,
+            width=0.004,
+        )
         ax.set_aspect("equal")
         ax.set_xlabel(f"along the target plane ({unit})")
         ax.set_ylabel(f"across ({unit})")
@@ -819,6 +830,11 @@ def plot_residual_field(
 
 def uncertainty_of(calib: Calibration):
     """The projection uncertainty map of ``calib`` and a note, or ``(None, why)``.
+
+    The map is :func:`~gtsam_sphere.uncertainty.uncertainty_map_of`'s
+    default: points at infinity, the camera rotation compensated over the
+    calibration's observations (its ``sigma_fixed_ray_px`` holds the
+    uncompensated term for comparison).
 
     Returns
     -------
@@ -883,9 +899,31 @@ def plot_uncertainty(
     if inside is not None:
         s_in = umap.summary(inside)
         sub += f"; median {_fmt(s_in['median_px'])} px where observed"
-    ax.set_title(f"{title}\n{sub}\n{note}", fontsize=9)
+    which = _uncertainty_which(umap)
+    ax.set_title(f"{title}\n{sub}\n{which}\n{note}", fontsize=9)
     ax.legend(loc="lower left", fontsize=8, framealpha=0.85)
     return _save(fig, path, tight=True)
+
+
+def _uncertainty_which(umap) -> str:
+    """Which map is shown, and the fixed-ray figure for comparison, in one line."""
+    if getattr(umap, "compensation", "none") == "none":
+        return "shown: a fixed camera-frame ray (camera frame not compensated)"
+    text = "shown: camera rotation compensated"
+    if umap.compensation != "rotation":
+        text = "shown: camera rotation and translation compensated"
+    fixed = _fixed_ray_total(umap)
+    if fixed is not None and np.any(np.isfinite(fixed)):
+        text += f" (a fixed camera-frame ray: median {_fmt(float(np.nanmedian(fixed)))} px)"
+    return text
+
+
+def _fixed_ray_total(umap):
+    """The map's total (px, kNN term included) for a fixed camera-frame ray, or ``None``."""
+    fixed = getattr(umap, "sigma_fixed_ray_px", None)
+    if fixed is None:
+        return None
+    return np.sqrt(fixed**2 + umap.sigma_knn_px**2)
 
 
 def _observed_cells(umap, uv: np.ndarray) -> np.ndarray:
@@ -1233,18 +1271,39 @@ def write_report(
         blocks.append("None: every observation has full weight (or none were recorded).")
     blocks.append((2, "Projection uncertainty"))
     blocks.append(
-        "How to read it: each cell is the standard deviation, in pixels, of where a fixed ray "
-        "would land in the image if the intrinsics were drawn from their estimated covariance "
-        "(and, with a kNN correction, the standard error of its local average). Where it is "
-        "small next to the residual RMS the calibration pins the image down; where it grows "
+        "How to read it: each cell is the standard deviation, in pixels, of where a ray at "
+        "infinity would land in the image if the intrinsics were drawn from their estimated "
+        "covariance (and, with a kNN correction, the standard error of its local average). "
+        "The camera frame is only known through the calibration's poses, so each draw is "
+        "first re-aligned by the camera rotation that best matches the nominal image over the "
+        "observations (weighted by their number): an error the poses absorb, such as most of "
+        "the principal point's, moves no image of the world and is not counted. Where the map "
+        "is small next to the residual RMS the calibration pins the image down; where it grows "
         "(usually away from the observations) the model is extrapolating."
     )
     if umap is not None:
         summ = umap.summary()
-        blocks.append(
-            f"Median {_value(summ['median_px'])} px, max {_value(summ['max_px'])} px over "
-            f"{summ['n_cells']} cells; source: {umap.note}."
+        text = (
+            f"Shown: {umap.describe()}. Median {_value(summ['median_px'])} px, max "
+            f"{_value(summ['max_px'])} px over {summ['n_cells']} cells"
         )
+        if obs is not None and np.all(np.isfinite(obs.uv_px)):
+            s_in = umap.summary(_observed_cells(umap, obs.uv_px))
+            text += f" ({_value(s_in['median_px'])} px median where observed)"
+        fixed = _fixed_ray_total(umap)
+        if umap.compensation != "none" and fixed is not None:
+            ok = np.isfinite(fixed)
+            if ok.any():
+                text += (
+                    f"; for a fixed camera-frame ray (no compensation, "
+                    f"`uncertainty_map_of(..., compensate_rotation=False)`) median "
+                    f"{_value(float(np.median(fixed[ok])))} px, max "
+                    f"{_value(float(np.max(fixed[ok])))} px"
+                )
+        if umap.motion_sigma is not None and len(umap.motion_sigma) >= 3:
+            mrad = ", ".join(f"{1e3 * x:.3g}" for x in umap.motion_sigma[:3])
+            text += f"; the fitted rotation's sigma (x, y, z) is {mrad} mrad"
+        blocks.append(text + f". Source: {umap.note}.")
     else:
         blocks.append(f"No map: {unote}.")
     blocks.append(_Image(paths["uncertainty"].name, PLOTS["uncertainty"]))

@@ -6,6 +6,8 @@ import dataclasses
 
 import numpy as np
 import pytest
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
 
 from gtsam_sphere import SphereCamera
 from gtsam_sphere.calibration import Calibration
@@ -14,9 +16,12 @@ from gtsam_sphere.dataset import DatasetError
 from gtsam_sphere.export import pixel_rays
 from gtsam_sphere.report import PLOTS, write_report
 from gtsam_sphere.uncertainty import (
+    cell_weights,
+    compensate_jacobian,
     intrinsic_value,
     intrinsics_covariance,
     knn_sigma_px,
+    motion_jacobian,
     uncertainty_map,
     uncertainty_map_of,
     with_intrinsic,
@@ -195,3 +200,281 @@ def test_uncertainty_of_a_calibration_and_its_report_section(tmp_path):
     assert paths["uncertainty"].exists() and "No map" in paths["markdown"].read_text()
     with pytest.raises(DatasetError, match="neither"):
         uncertainty_map_of(_calibration({}))
+
+
+# --------------------------------------------------------------- compensated camera frame
+
+
+def _observations(n: int = 1500, seed: int = 5) -> np.ndarray:
+    """Observed pixels over part of the image only (the fit region), (n, 2) px."""
+    return np.random.default_rng(seed).uniform([100, 80], [560, 480], size=(n, 2))
+
+
+def _monte_carlo_compensated(cam, cov, names, m, range_m, fit_ranges, n_draws, seed=0):
+    """Per-cell RMS projection change (px) after the best motion fitted numerically.
+
+    For each draw of the intrinsics, the rotation (and, with ``fit_ranges``,
+    the translation, over the grid's points at each of those ranges) that
+    minimises the weighted squared pixel differences over the map's fit
+    region is found by nonlinear least squares on the perturbed camera's
+    exact projection; the change is then measured on every cell, at
+    ``range_m`` (``None``: infinity).
+    """
+    rows, cols = np.nonzero(np.isfinite(m.sigma_px))
+    uv = np.column_stack([m.u_px[cols], m.v_px[rows]])
+    rays = pixel_rays(cam, uv)
+    w = m.fit_weight[rows, cols]
+    fit = w > 0
+    shells = list(fit_ranges or [])
+    n_motion = 6 if shells else 3
+    sw = np.sqrt(np.tile(w[fit], max(len(shells), 1)))[:, None]
+
+    def moved(c, x, idx, ranges):
+        """Pixels of the cells ``idx`` moved by ``x``, one block per range (one projection)."""
+        rot = Rotation.from_rotvec(x[:3])
+        p = [
+            rot.apply(rays[idx]) if r is None else rot.apply(r * rays[idx]) + x[3:] for r in ranges
+        ]
+        return c.project(np.concatenate(p))
+
+    def residual(x, c):
+        q = moved(c, x, fit, shells or [None]) - np.tile(uv[fit], (max(len(shells), 1), 1))
+        return (q * sw).ravel()
+
+    scale = np.r_[np.full(3, 1e-3), np.full(n_motion - 3, 1e-3 * max(shells or [1.0]))]
+    theta0 = np.array([intrinsic_value(cam, n) for n in names])
+    rng = np.random.default_rng(seed)
+    diffs = []
+    for d in rng.multivariate_normal(np.zeros(len(names)), cov, size=n_draws):
+        c = cam
+        for name, value in zip(names, theta0 + d):
+            c = with_intrinsic(c, name, value)
+        x = least_squares(residual, np.zeros(n_motion), x_scale=scale, args=(c,), method="lm").x
+        diffs.append(moved(c, x, slice(None), [range_m]) - uv)
+    diffs = np.array(diffs)
+    return rows, cols, np.sqrt(diffs.var(axis=0).sum(axis=1))
+
+
+@pytest.mark.parametrize(
+    "range_m, fit_ranges",
+    [(None, None), (1.5, [1.0, 2.0, 4.0])],
+    ids=["rotation", "three-shells"],
+)
+def test_compensated_map_matches_monte_carlo_with_a_fitted_motion(range_m, fit_ranges):
+    cam, cov = brown_camera(), covariance()
+    m = uncertainty_map(
+        cam,
+        cov,
+        NAMES,
+        n_cols=8,
+        compensate_rotation=True,
+        fit_uv_px=_observations(),
+        range_m=range_m,
+        fit_ranges_m=fit_ranges,
+    )
+    translated = range_m is not None or fit_ranges is not None
+    assert m.compensation == ("rotation+translation" if translated else "rotation")
+    shells = fit_ranges or ([range_m] if range_m is not None else None)
+    rows, cols, mc = _monte_carlo_compensated(cam, cov, NAMES, m, range_m, shells, n_draws=200)
+    err = np.abs(m.sigma_intrinsics_px[rows, cols] / mc - 1)
+    assert err.max() < 0.15
+    # the fixed-ray map is not the same quantity: several times the fitted answer somewhere
+    fixed_err = np.abs(m.sigma_fixed_ray_px[rows, cols] / mc - 1)
+    assert fixed_err.max() > 1.0 and np.mean(fixed_err > 0.15) > 0.3
+
+
+def test_one_shell_is_range_invariant_and_several_shells_are_not():
+    cam, cov, obs = brown_camera(), covariance(), _observations()
+    kw = dict(n_cols=10, compensate_rotation=True, fit_uv_px=obs)
+    near = uncertainty_map(cam, cov, NAMES, range_m=0.5, **kw)
+    far = uncertainty_map(cam, cov, NAMES, range_m=50.0, **kw)
+    assert np.allclose(near.sigma_px, far.sigma_px, rtol=1e-6, equal_nan=True)
+    shells = [1.0, 2.0, 4.0]
+    at = {
+        r: uncertainty_map(cam, cov, NAMES, range_m=r, fit_ranges_m=shells, **kw)
+        for r in (2.0, 20.0, None)
+    }
+    med = {r: np.nanmedian(mm.sigma_px) for r, mm in at.items()}
+    # smallest among the fitted depths, growing towards infinity
+    assert med[2.0] < med[20.0] < med[None] * 1.001
+    assert at[None].fit_ranges_m == (1.0, 2.0, 4.0) and "range 1, 2, 4" in at[None].fit_note
+    rot = uncertainty_map(cam, cov, NAMES, **kw)
+    assert med[None] == pytest.approx(np.nanmedian(rot.sigma_px), rel=0.3)
+
+
+def test_principal_point_alone_is_almost_a_rotation_on_an_ideal_lens():
+    cam = SphereCamera(W, H, xp=402.0, yp=297.0, c=330.0, radial={})  # equidistant
+    names = ["xp_px", "yp_px", "c_px"]
+    cov = np.diag([0.3**2, 0.3**2, 0.0])
+    sigma_pp = np.hypot(0.3, 0.3)
+    fixed = uncertainty_map(cam, cov, names, n_cols=20)
+    comp = uncertainty_map(
+        cam, cov, names, n_cols=20, compensate_rotation=True, fit_uv_px=_observations(2000)
+    )
+    ok = np.isfinite(fixed.sigma_px)
+    assert ok.all() and np.allclose(fixed.sigma_px, sigma_pp, rtol=1e-6)
+    assert np.allclose(comp.sigma_fixed_ray_px, fixed.sigma_px)
+    r = np.hypot(*np.meshgrid(comp.u_px - cam.xp, comp.v_px - cam.yp))
+    assert comp.sigma_px[r < 100].max() < 0.05 * sigma_pp
+    # what is left grows towards the rim, where a rotation is no longer a shift
+    assert comp.sigma_px[r > 350].min() > 3 * comp.sigma_px[r < 100].max()
+    assert comp.sigma_px.max() < sigma_pp
+    # the fitted rotation is the shift over the principal distance (rad)
+    assert comp.motion_sigma[:2] == pytest.approx(0.3 / cam.c, rel=0.15)
+    # (a rotation about the axis helps only because the fit region is off-centre)
+    assert comp.motion_sigma[2] < 0.2 * comp.motion_sigma[0]
+    # without observations the fit is uniform over the image: still small at the centre
+    uniform = uncertainty_map(cam, cov, names, n_cols=20, compensate_rotation=True)
+    assert np.all(uniform.fit_weight == 1.0) and "uniform" in uniform.fit_note
+    assert uniform.sigma_px[r < 100].max() < 0.15 * sigma_pp
+
+
+def test_compensation_never_increases_the_weighted_variance_over_the_fit_region():
+    cam = brown_camera()
+    rng = np.random.default_rng(3)
+    sig = np.sqrt(np.diag(covariance()))
+    obs = _observations()
+    for _ in range(4):
+        a = rng.normal(size=(6, 6))
+        cov = np.outer(sig, sig) * (a @ a.T) / 6  # random correlations, the same scales
+        for range_m in (None, 1.5):
+            m = uncertainty_map(
+                cam,
+                cov,
+                NAMES,
+                n_cols=12,
+                compensate_rotation=True,
+                fit_uv_px=obs,
+                range_m=range_m,
+            )
+            w = m.fit_weight
+            fixed = np.nansum(w * m.sigma_fixed_ray_px**2)
+            comp = np.nansum(w * m.sigma_intrinsics_px**2)
+            assert comp <= fixed * (1 + 1e-9)
+            assert comp < 0.9 * fixed  # and the principal point's share is gone
+    # pointwise it need not hold (the module docstring says so): the cells right of
+    # the fit region, and a few on its border, grow by a few percent here
+    m = uncertainty_map(
+        cam, covariance(), NAMES, n_cols=12, compensate_rotation=True, fit_uv_px=obs
+    )
+    ratio = m.sigma_intrinsics_px / m.sigma_fixed_ray_px
+    assert np.nanmax(ratio) > 1.0 and np.nanmax(ratio) < 1.1
+    assert np.median(ratio[m.fit_weight > 0]) < 0.8
+    # more freedom (a translation too) fits at least as well
+    m6 = uncertainty_map(
+        cam, covariance(), NAMES, n_cols=12, compensate_rotation=True, fit_uv_px=obs, range_m=1.5
+    )
+    w = m.fit_weight
+    assert np.nansum(w * m6.sigma_intrinsics_px**2) <= np.nansum(w * m.sigma_intrinsics_px**2)
+
+
+def test_compensated_map_shapes_and_bad_inputs():
+    cam, cov = brown_camera(), covariance()
+    obs = _observations()
+    m = uncertainty_map(cam, cov, NAMES, n_cols=10, compensate_rotation=True, fit_uv_px=obs)
+    shape = m.sigma_px.shape
+    assert shape == (8, 10) and m.cov_px.shape == shape + (2, 2)
+    for a in (m.sigma_intrinsics_px, m.sigma_fixed_ray_px, m.fit_weight):
+        assert a.shape == shape
+    assert m.motion_sigma.shape == (3,) and m.range_m is None
+    assert m.fit_weight.sum() == pytest.approx(len(obs)) and "observations" in m.fit_note
+    assert "rotation" in m.describe() and "infinity" in m.describe()
+    m6 = uncertainty_map(
+        cam, cov, NAMES, n_cols=10, compensate_rotation=True, fit_uv_px=obs, range_m=3.0
+    )
+    assert m6.motion_sigma.shape == (6,) and "translation" in m6.describe()
+    # the default keeps the fixed-ray map, identical to the stored fixed-ray term
+    plain = uncertainty_map(cam, cov, NAMES, n_cols=10)
+    assert plain.compensation == "none" and plain.fit_weight is None
+    assert plain.motion_sigma is None and "fixed" in plain.describe()
+    assert np.array_equal(plain.sigma_intrinsics_px, plain.sigma_fixed_ray_px, equal_nan=True)
+    assert np.allclose(m.sigma_fixed_ray_px, plain.sigma_px, equal_nan=True)
+    # linear in the covariance, zero without one
+    m4 = uncertainty_map(cam, 4 * cov, NAMES, n_cols=10, compensate_rotation=True, fit_uv_px=obs)
+    ok = np.isfinite(m.sigma_px)
+    assert np.allclose(m4.sigma_px[ok], 2 * m.sigma_px[ok], rtol=0.03)
+    zero = uncertainty_map(
+        cam, np.zeros((6, 6)), NAMES, n_cols=10, compensate_rotation=True, fit_uv_px=obs
+    )
+    assert np.all(zero.sigma_px[ok] == 0.0)
+    # a robust weight of 0 removes an observation from the fit
+    half = uncertainty_map(
+        cam,
+        cov,
+        NAMES,
+        n_cols=10,
+        compensate_rotation=True,
+        fit_uv_px=obs,
+        fit_weight=np.r_[np.ones(750), np.zeros(750)],
+    )
+    assert half.fit_weight.sum() == pytest.approx(750)
+    bad = [
+        (dict(range_m=2.0), "compensate_rotation"),
+        (dict(fit_ranges_m=[2.0]), "compensate_rotation"),
+        (dict(compensate_rotation=True, fit_ranges_m=[1.0, 0.0]), "fit_ranges_m"),
+        (dict(compensate_rotation=True, fit_ranges_m=[]), "empty"),
+        (dict(compensate_rotation=True, range_m=-1.0), "range_m"),
+        (dict(compensate_rotation=True, range_m=float("nan")), "range_m"),
+        (dict(compensate_rotation=True, fit_uv_px=obs[:, :1]), r"\(M, 2\)"),
+        (dict(compensate_rotation=True, fit_uv_px=obs, fit_weight=-np.ones(len(obs))), ">= 0"),
+        (dict(compensate_rotation=True, fit_uv_px=obs, fit_weight=np.ones(3)), "fit_weight"),
+        (dict(compensate_rotation=True, fit_weight=np.ones(3)), "fit_uv_px"),
+        (dict(compensate_rotation=True, fit_uv_px=obs + 5000.0), "no observation"),
+    ]
+    for kwargs, match in bad:
+        with pytest.raises(ValueError, match=match):
+            uncertainty_map(cam, cov, NAMES, n_cols=10, **kwargs)
+    with pytest.raises(ValueError, match="NaN"):
+        uncertainty_map(cam, np.full((6, 6), np.nan), NAMES, n_cols=10)
+    # the building blocks
+    J = np.ones((5, 2, 4))
+    with pytest.raises(ValueError, match=r"\(N, 2, K\)"):
+        compensate_jacobian(J, np.ones((4, 2, 3)), np.ones(5))
+    with pytest.raises(ValueError, match="weights"):
+        compensate_jacobian(J, np.ones((5, 2, 3)), np.ones(4))
+    with pytest.raises(ValueError, match="no cell"):
+        compensate_jacobian(J, np.ones((5, 2, 3)), np.zeros(5))
+    counts = cell_weights(np.array([0.5, 1.5]), np.array([0.5]), np.array([[0.2, 0.4], [9, 9]]))
+    assert counts.tolist() == [[1.0, 0.0]]
+    rays = pixel_rays(cam, np.array([[402.0, 297.0], [700.0, 100.0]]))
+    G = motion_jacobian(cam, rays)
+    assert G.shape == (2, 2, 3)
+    # on the axis a rotation about x moves v, about y moves u, about z nothing
+    assert G[0, 1, 0] == pytest.approx(-cam.c, rel=1e-3) and abs(G[0, 0, 0]) < 1e-3
+    assert G[0, 0, 1] == pytest.approx(cam.c, rel=1e-3) and np.abs(G[0, :, 2]).max() < 1e-3
+    assert motion_jacobian(cam, rays, range_m=2.0).shape == (2, 2, 6)
+    with pytest.raises(ValueError, match="range_m"):
+        motion_jacobian(cam, rays, range_m=0.0)
+
+
+def test_map_of_a_calibration_is_compensated_over_its_observations():
+    calib = _calibration(
+        {"intrinsics_covariance": covariance().tolist(), "intrinsics_names": NAMES}
+    )
+    m = uncertainty_map_of(calib, n_cols=12)
+    assert m.compensation == "rotation" and "observations" in m.fit_note
+    assert m.fit_weight.sum() == pytest.approx(300)
+    fixed = uncertainty_map_of(calib, n_cols=12, compensate_rotation=False)
+    assert fixed.compensation == "none"
+    assert np.nanmedian(m.sigma_px) < np.nanmedian(fixed.sigma_px)
+    assert uncertainty_map_of(calib, n_cols=12, range_m=2.0).motion_sigma.shape == (6,)
+    with pytest.raises(DatasetError, match="range_m"):
+        uncertainty_map_of(calib, n_cols=12, range_m=-2.0)
+    # no stored observations, or none on the image: a uniform fit, and the note says so
+    del calib.extra["observations"]
+    assert "uniform" in uncertainty_map_of(calib, n_cols=12).fit_note
+    calib.extra["observations"] = {"uv_px": np.full((4, 2), 9000.0)}
+    assert "no stored observation" in uncertainty_map_of(calib, n_cols=12).fit_note
+
+
+def test_report_says_which_map_it_shows(tmp_path):
+    calib = _calibration(
+        {"intrinsics_covariance": covariance().tolist(), "intrinsics_names": NAMES}
+    )
+    paths = write_report(calib, tmp_path / "rep")
+    md = paths["markdown"].read_text()
+    assert "Shown: points at infinity, after the camera rotation" in md
+    assert "for a fixed camera-frame ray (no compensation" in md
+    assert "fitted rotation's sigma" in md and "camera rotation" in PLOTS["uncertainty"]
+    html = paths["html"].read_text()
+    assert "<code>uncertainty_map_of(..., compensate_rotation=False)</code>" in html
