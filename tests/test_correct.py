@@ -6,7 +6,7 @@ from sklearn.base import clone
 
 from gtsam_sphere.calibration import camera_from_dict
 from gtsam_sphere.camera import SphereCamera
-from gtsam_sphere.correct import KNNCorrection, correction_from_dict
+from gtsam_sphere.correct import KNNCorrection, consistent_with_neighbours, correction_from_dict
 
 
 def _field(uv):
@@ -57,3 +57,47 @@ def test_camera_with_correction_reloads_exactly():
     assert np.mean(err < 1e-9) > 0.95
     assert err.max() < 2e-3
     assert isinstance(correction_from_dict(model.to_dict()), KNNCorrection)
+
+
+def _steep(uv):
+    # a lens-mapping-like field: hundreds of px, 0.6 px/px at the border (the sphere mapping's
+    # error on a 150 degree lens)
+    r = uv - 500.0
+    return 0.6 * r * (np.linalg.norm(r, axis=1, keepdims=True) / 700.0)
+
+
+def test_local_linear_removes_the_one_sided_border_bias():
+    rng = np.random.default_rng(2)
+    uv = rng.uniform(0, 1000, size=(1500, 2))
+    y = _steep(uv) + 0.1 * rng.normal(size=uv.shape)
+    border = np.min(np.minimum(uv, 1000 - uv), axis=1) < 30
+    errs = {}
+    for degree in (0, 1):
+        model = KNNCorrection(n_neighbors=8, weights="uniform", degree=degree).fit(uv, y)
+        err = np.linalg.norm(model.predict_without_self() - _steep(uv), axis=1)
+        errs[degree] = np.sqrt(np.mean(err[border] ** 2))
+    assert errs[0] > 5.0  # the mean of one-sided neighbours on a steep field
+    assert errs[1] < 0.15 * errs[0]  # the local plane has no first-order bias (curvature left)
+    # cross-validation chooses the local plane for such a field, and a new pixel is predicted
+    # as well as a training one
+    model = KNNCorrection(degree=None, random_state=0).fit(uv, y)
+    assert model.degree_ == 1 and (1, model.n_neighbors_, model.weights_) in model.cv_scores_
+    test = rng.uniform(0, 1000, size=(300, 2))
+    assert np.sqrt(np.mean((model.predict(test) - _steep(test)) ** 2)) < 0.5
+    back = correction_from_dict(model.to_dict())
+    np.testing.assert_array_equal(back.predict(test), model.predict(test))
+    with pytest.raises(ValueError, match="degree"):
+        KNNCorrection(degree=2).fit(uv, y)
+
+
+def test_blunders_are_left_out_of_training_but_not_the_border():
+    rng = np.random.default_rng(3)
+    uv = rng.uniform(0, 1000, size=(2000, 2))
+    y = _steep(uv) + 0.3 * rng.normal(size=uv.shape)
+    bad = rng.random(len(uv)) < 0.05
+    y[bad] += rng.normal(scale=30.0, size=(bad.sum(), 2)) + 15.0 * np.sign(rng.normal(size=2))
+    good = consistent_with_neighbours(uv, y)
+    assert np.mean(~good[bad]) > 0.95
+    assert np.mean(good[~bad]) > 0.99
+    border = np.min(np.minimum(uv, 1000 - uv), axis=1) < 30
+    assert np.mean(good[border & ~bad]) > 0.98
