@@ -508,6 +508,10 @@ def knn_sigma_px(correction, uv_px: np.ndarray) -> np.ndarray | None:
     training neighbours ``j`` (``y`` their training corrections, ``y_hat``
     the prediction, the uniform mean). ``None`` when ``correction`` is not a
     fitted :class:`~gtsam_sphere.correct.KNNCorrection` (no training set).
+    For a local-linear model (``degree_ == 1``, the pure sphere mapping) this
+    is the plain average's figure, an approximation: the spread then holds the
+    field's local gradient (too large) and the plane's leverage at the border
+    is left out (too small).
     """
     reg = getattr(correction, "regressor_", None)
     y = getattr(correction, "corrections_px_", None)
