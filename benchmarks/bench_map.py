@@ -34,7 +34,10 @@ value (two views along the direction of travel leave its depth almost free),
 a Python block when all its images are in; GTSAM's default ISAM2
 parameters). Every run is a separate process (peak memory from
 ``resource.getrusage(RUSAGE_CHILDREN).ru_maxrss``, read by a wrapper process
-that runs nothing else); times exclude the simulation.
+that runs nothing else); times exclude the simulation. The paths of one size run
+back to back, ``--repeat`` times round-robin; the table shows each path's median
+run (by time per LM iteration or ISAM2 update) and the ratios add the range of
+the run-by-run ratios (run ``k`` of a path against run ``k`` of ``cpp-ref``).
 The growth exponent is the least-squares slope of log(time) against
 log(observations) over the sizes run.
 
@@ -43,6 +46,7 @@ Usage::
     nice python benchmarks/bench_map.py --quick            # < 1 min
     nice python benchmarks/bench_map.py                    # 1e4 .. 3e5 observations
     nice python benchmarks/bench_map.py --sizes 1e6 --paths bearing,cpp-ref --modes lm
+    nice python benchmarks/bench_map.py --sizes 1e4,3e4,1e5 --repeat 3   # medians of 3 runs
     python benchmarks/bench_map.py --report a.json,b.json   # one table from --json files
 """
 
@@ -361,6 +365,18 @@ def run_one(args, path, mode, n_obs) -> dict:
     return out
 
 
+def median_run(runs: list[dict]) -> dict:
+    """The run with the median time per iteration/update among the successful ones (the
+    first failure if none succeeded); ``iter_s_runs`` lists every run's, in run order
+    (NaN for a failed run)."""
+    ok = sorted((r for r in runs if r.get("status") == "ok"), key=lambda r: r["iter_s"])
+    if not ok:
+        return runs[0]
+    row = dict(ok[(len(ok) - 1) // 2])
+    row["iter_s_runs"] = [r.get("iter_s", math.nan) for r in runs]
+    return row
+
+
 def growth_exponent(rows, key: str) -> float:
     """Slope of log(row[key]) against log(n_obs) (NaN with fewer than 2 sizes)."""
     pts = [(r["n_obs"], r[key]) for r in rows if r.get("status") == "ok" and r.get(key, 0) > 0]
@@ -426,9 +442,17 @@ def summarise(rows) -> None:
         ]
         if ref:
             q = ref[0]
+            paired = ""
+            a, b = r.get("iter_s_runs", []), q.get("iter_s_runs", [])
+            if len(a) > 1 and len(a) == len(b):  # run k of both paths ran back to back
+                x = np.array(a) / np.array(b)
+                x = x[np.isfinite(x)]
+                if len(x):
+                    paired = f" (run by run {x.min():.2f}x to {x.max():.2f}x)"
             print(
                 f"  {r['path']:12s} {r['mode']:5s} {r['n_obs']:>9,}: per iteration/update "
-                f"{r['iter_s'] / q['iter_s']:.2f}x, total {r['total_s'] / q['total_s']:.2f}x"
+                f"{r['iter_s'] / q['iter_s']:.2f}x{paired}, total "
+                f"{r['total_s'] / q['total_s']:.2f}x"
             )
 
 
@@ -447,6 +471,12 @@ def main(argv=None) -> int:
     ap.add_argument("--lm-iterations", type=int, default=20)
     ap.add_argument("--max-obs", type=int, default=8, help="observations per Python block")
     ap.add_argument("--timeout", type=float, default=540.0, help="seconds per run")
+    ap.add_argument(
+        "--repeat",
+        type=int,
+        default=1,
+        help="runs per path and size (round-robin); the table shows the median run",
+    )
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--json", default=None, help="also write the rows to this file")
     ap.add_argument(
@@ -501,20 +531,27 @@ def main(argv=None) -> int:
     print(f"# command: {' '.join([os.path.basename(sys.executable)] + sys.argv)}")
     rows = []
     t_start = time.perf_counter()
+    limit = {"python": args.python_max_n, "python-gtsam": args.python_gtsam_max_n}
     for mode in modes:
-        for path in paths:
-            for n in sizes:
-                limit = {"python": args.python_max_n, "python-gtsam": args.python_gtsam_max_n}
-                if n > limit.get(path, math.inf):
-                    continue
-                row = run_one(args, path, mode, n)
-                rows.append(row)
-                status = row.get("status")
-                took = row.get("total_s", float("nan"))
-                print(
-                    f"# {path} {mode} {n:,}: {status}, {took:.1f} s, load {os.getloadavg()[0]:.2f}",
-                    flush=True,
-                )
+        for n in sizes:
+            # the paths of one size run back to back (round-robin over --repeat), so
+            # their ratios see the same machine load
+            runs: dict[str, list[dict]] = {p: [] for p in paths if n <= limit.get(p, math.inf)}
+            for rep in range(args.repeat):
+                for path in runs:
+                    row = run_one(args, path, mode, n)
+                    runs[path].append(row)
+                    status = row.get("status")
+                    took = row.get("total_s", float("nan"))
+                    print(
+                        f"# {path} {mode} {n:,} (run {rep + 1}/{args.repeat}): {status}, "
+                        f"{took:.1f} s, per iteration/update {row.get('iter_s', math.nan):.4f} s, "
+                        f"load {os.getloadavg()[0]:.2f}",
+                        flush=True,
+                    )
+            rows.extend(median_run(r) for r in runs.values())
+    order = {p: k for k, p in enumerate(PATHS)}
+    rows.sort(key=lambda r: (r["mode"] != "lm", order.get(r["path"], 99), r["n_obs_requested"]))
     print()
     print_table(rows)
     summarise(rows)
