@@ -38,6 +38,10 @@ RADIAL_DEFAULT_TERMS = ("p1", "p2", "a1", "a2")
 
 # median of the norm of a 2-D standard normal vector: sqrt(2 ln 2)
 _MEDIAN_CHI2 = math.sqrt(2.0 * math.log(2.0))
+#: floor of the estimated image noise (px): no detector measures better, and below it
+#: perfect (simulated) data whitens residuals at the projection's numerical noise, so LM
+#: stalls and the covariance looks singular (seen at 1e-4 px; 0.001 px took 194 iterations)
+MIN_SIGMA_PX = 0.005
 
 
 @dataclass
@@ -233,7 +237,7 @@ def adjust(
         if not estimate_sigma:
             break
         r = np.linalg.norm(problem.residuals_px(result.values), axis=1)
-        sigma = max(float(np.median(r) / _MEDIAN_CHI2), 1e-4)
+        sigma = max(float(np.median(r) / _MEDIAN_CHI2), MIN_SIGMA_PX)
         old = problem.noise.sigma_px
         if progress:
             progress(f"{label}robust scale estimate sigma = {sigma:.4f} px (was {old:.4f})")

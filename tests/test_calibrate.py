@@ -121,3 +121,23 @@ def test_dogleg_matches_lm():
     _, dl, rep_dl = _run(120.0, optimizer="dogleg")
     assert abs(dl.camera.c - lm.camera.c) < 1e-3
     assert abs(rep_dl.rmse_3d - rep_lm.rmse_3d) < 1e-5
+
+
+def test_noise_free_data_converges_and_is_trusted():
+    """Perfect measurements (a renderer, a simulator): the noise estimate stops at its
+    floor instead of whitening the projection's numerical noise (it stalled before)."""
+    from gtsam_sphere.calibrate import MIN_SIGMA_PX
+
+    sim = simulate_room(
+        SimulationOptions(
+            lens="equidistant", fov_deg=180.0, noise_px=0.0, seed=2, n_images=12,
+            n_targets=150, n_checkpoints=20, width=1600, height=1200,
+        )
+    )
+    calib = calibrate(parse_dataset(sim.dataset), CalibrationOptions(model="radial"))
+    st = calib.statistics
+    assert st["converged"] and st["trusted"], st.get("distrust")
+    assert st["sigma_px"] == MIN_SIGMA_PX and st["n_outliers"] == 0
+    assert st["rms_px"] < 1e-3
+    lens = sim.truth["lens"]
+    assert abs(calib.camera.c - lens["f"]) < 1e-3 and abs(calib.camera.xp - lens["cx"]) < 1e-3
