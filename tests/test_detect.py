@@ -16,9 +16,9 @@ from gtsam_sphere.detect import (
     detect_image,
     detect_images,
     refine_predicted_corners,
-    render_board_image,
     run_cli,
 )
+from gtsam_sphere.simulate.render import render_board_image
 
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
 W, H = 560, 420

@@ -8,9 +8,10 @@ averaged (box filter over the pixel footprint). Any lens of
 :mod:`gtsam_sphere.simulate.lenses` works, including fisheyes whose field of view
 exceeds 180 degrees (rays with ``z < 0`` are followed like any other).
 
-Scene: an :class:`ArucoRoom`, a box room whose floor, ceiling and walls carry
-ArUco markers (black code square with a white quiet zone) at known 3-D positions
-and in-plane orientations. :func:`render_aruco_room` returns the image and the
+Scenes: a printed board (:func:`render_board_image`, chessboard or ChArUco, the
+world frame is the board's), and an :class:`ArucoRoom`, a box room whose floor,
+ceiling and walls carry ArUco markers (black code square with a white quiet zone) at
+known 3-D positions and in-plane orientations. :func:`render_aruco_room` returns the image and the
 true pixel of every visible marker corner and centre, keyed like
 :func:`gtsam_sphere.detect.detect_image` (``"M{id}"`` centre, ``"M{id}_{k}"``
 corner ``k`` in OpenCV's order).
@@ -34,12 +35,14 @@ phases, 8-bit output included; up to ``1 / (2 S)`` px without the pre-blur).
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import cv2
 import numpy as np
+
+from ..detect import BoardSpec
 
 __all__ = [
     "ArucoMarker",
@@ -47,6 +50,7 @@ __all__ = [
     "make_aruco_room",
     "pixel_rays",
     "render_aruco_room",
+    "render_board_image",
 ]
 
 
@@ -678,12 +682,7 @@ def render_aruco_room(
         for s in range(n_sub):
             total += value0[idx] if s == 0 else trace(flat[s, idx])[0]
         acc[idx] = total / n_sub
-    img = acc.reshape(height, width)
-    if blur_sigma_px > 0:
-        img = cv2.GaussianBlur(img, (0, 0), blur_sigma_px)
-    if noise_sigma > 0:
-        img = img + np.random.default_rng(seed).normal(0.0, noise_sigma, img.shape)
-    image = np.clip(np.round(img), 0, 255).astype(np.uint8)
+    image = _finish_image(acc.reshape(height, width), blur_sigma_px, noise_sigma, seed)
 
     truth: dict[str, np.ndarray] = {}
     points = room.target_points_m()
@@ -693,10 +692,162 @@ def render_aruco_room(
         xyz = np.array([points[k] for k in keys])
         uv = np.asarray(lens.project(xyz @ R.T + t), dtype=np.float64).reshape(-1, 2)
         for k, q in zip(keys, uv, strict=True):
-            if (
-                np.all(np.isfinite(q))
-                and -0.5 <= q[0] <= width - 0.5
-                and -0.5 <= q[1] <= height - 0.5
-            ):
+            if _inside_image(q, width, height):
+                truth[k] = q
+    return image, truth
+
+
+def _finish_image(img: np.ndarray, blur_sigma_px: float, noise_sigma: float, seed: int):
+    """Optics blur (Gaussian, px), additive noise (grey levels, seeded), 8-bit quantisation
+    of a float image (H, W); returns uint8 (H, W)."""
+    if blur_sigma_px > 0:
+        img = cv2.GaussianBlur(img, (0, 0), blur_sigma_px)
+    if noise_sigma > 0:
+        img = img + np.random.default_rng(seed).normal(0.0, noise_sigma, img.shape)
+    return np.clip(np.round(img), 0, 255).astype(np.uint8)
+
+
+def _inside_image(q: np.ndarray, width: int, height: int) -> bool:
+    """A finite pixel ``(u, v)`` on the image (pixel centres at integers)."""
+    return bool(
+        np.all(np.isfinite(q)) and -0.5 <= q[0] <= width - 0.5 and -0.5 <= q[1] <= height - 0.5
+    )
+
+
+# --------------------------------------------------------------------------------------
+# Printed boards (chessboard, ChArUco)
+# --------------------------------------------------------------------------------------
+
+
+def _board_texture(board: BoardSpec, px_per_square: int) -> tuple[np.ndarray, np.ndarray]:
+    """High-resolution board texture and the board coordinates of its texel origin.
+
+    Returns ``(texture uint8 (H, W), origin_m (2,))``: texel ``(i, j)`` covers board
+    ``x`` in ``origin + [j, j+1) * square / px_per_square`` (likewise ``y`` with ``i``).
+    """
+    pps = int(px_per_square)
+    if board.kind == "chessboard":
+        nx, ny = board.cols + 1, board.rows + 1  # squares
+        margin = pps  # one square of white border
+        j = (np.arange(nx * pps + 2 * margin) - margin) // pps
+        i = (np.arange(ny * pps + 2 * margin) - margin) // pps
+        inside = (i[:, None] >= 0) & (i[:, None] < ny) & (j[None] >= 0) & (j[None] < nx)
+        dark = ((i[:, None] + j[None]) % 2 == 0) & inside
+        tex = np.where(dark, 0, 255).astype(np.uint8)
+        # Board frame origin is the first inner corner, one square inside the board.
+        origin = -np.array([1.0, 1.0]) * board.square_m - margin / pps * board.square_m
+        return tex, origin
+    if board.kind == "charuco":
+        margin = pps
+        size = (board.cols * pps + 2 * margin, board.rows * pps + 2 * margin)
+        tex = board.charuco_board().generateImage(size, marginSize=margin, borderBits=1)
+        origin = -np.array([1.0, 1.0]) * margin / pps * board.square_m
+        return np.asarray(tex, dtype=np.uint8), origin
+    raise ValueError(f"rendering supports chessboard and charuco boards, not {board.kind!r}")
+
+
+def render_board_image(
+    board: BoardSpec,
+    lens_project: Callable[[np.ndarray], np.ndarray],
+    lens_unproject: Callable[[np.ndarray], np.ndarray],
+    cam_from_world_R: np.ndarray,
+    cam_from_world_t: np.ndarray,
+    width: int,
+    height: int,
+    px_per_square: int = 48,
+    *,
+    supersample: int = 4,
+    background: int = 128,
+    blur_sigma_px: float = 0.0,
+    noise_sigma: float = 0.0,
+    seed: int = 0,
+) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """Render a printed board as seen through an arbitrary camera.
+
+    Every output pixel is split into ``supersample x supersample`` sub-samples; each is
+    unprojected to a ray, intersected with the board plane, and the board texture
+    (``px_per_square`` texels per square) is sampled bilinearly (``cv2.remap``); the
+    sub-samples are averaged (box anti-aliasing over the pixel footprint).
+
+    Parameters
+    ----------
+    board : BoardSpec
+        ``"chessboard"`` or ``"charuco"`` board; the world frame is the board frame.
+    lens_project : callable
+        ``project(points_cam (N, 3)) -> uv (N, 2)`` pixels.
+    lens_unproject : callable
+        ``unproject(uv (N, 2)) -> rays (N, 3)`` in the camera frame (any length).
+    cam_from_world_R : ndarray, shape (3, 3)
+        Rotation board -> camera, ``p_cam = R @ p_board + t``.
+    cam_from_world_t : ndarray, shape (3,)
+        Translation in metres.
+    width, height : int
+        Image size in pixels.
+    px_per_square : int, optional
+        Texture resolution (texels per board square).
+    supersample : int, optional
+        Sub-samples per pixel along each axis.
+    background : int, optional
+        Grey level where rays miss the board (or hit it from behind).
+    blur_sigma_px : float, optional
+        Gaussian blur (pixels) applied to the rendered image (optics), 0 = none.
+    noise_sigma : float, optional
+        Additive Gaussian noise (grey levels).
+    seed : int, optional
+        Noise seed.
+
+    Returns
+    -------
+    image : ndarray, shape (height, width), uint8
+        Rendered grey image.
+    truth : dict of str to ndarray, shape (2,)
+        Target id -> projected ``(u, v)`` pixels of every board corner in front of the
+        camera and inside the image.
+    """
+    R = np.asarray(cam_from_world_R, dtype=np.float64).reshape(3, 3)
+    t = np.asarray(cam_from_world_t, dtype=np.float64).reshape(3)
+    tex, origin = _board_texture(board, px_per_square)
+    texel_m = board.square_m / px_per_square
+    ss = int(supersample)
+    offs = (np.arange(ss) + 0.5) / ss - 0.5
+    acc = np.zeros((height, width), dtype=np.float64)
+    normal = R[:, 2]  # board z axis in the camera frame
+    d0 = float(normal @ t)  # plane: normal . p = d0
+    vv, uu = np.mgrid[0:height, 0:width].astype(np.float64)
+    for dv in offs:
+        for du in offs:
+            uv = np.stack([(uu + du).ravel(), (vv + dv).ravel()], axis=1)
+            rays = np.asarray(lens_unproject(uv), dtype=np.float64).reshape(-1, 3)
+            denom = rays @ normal
+            with np.errstate(divide="ignore", invalid="ignore"):
+                lam = d0 / denom
+            valid = np.isfinite(lam) & (lam > 0) & np.all(np.isfinite(rays), axis=1)
+            p_cam = rays * np.where(valid, lam, 0.0)[:, None]
+            p_board = (p_cam - t) @ R  # R^T (p - t)
+            mx = (p_board[:, 0] - origin[0]) / texel_m - 0.5
+            my = (p_board[:, 1] - origin[1]) / texel_m - 0.5
+            mx = np.where(valid, mx, -10.0).astype(np.float32).reshape(height, width)
+            my = np.where(valid, my, -10.0).astype(np.float32).reshape(height, width)
+            sample = cv2.remap(
+                tex.astype(np.float32),
+                mx,
+                my,
+                cv2.INTER_LINEAR,
+                borderMode=cv2.BORDER_CONSTANT,
+                borderValue=float(background),
+            )
+            acc += sample
+    image = _finish_image(acc / (ss * ss), blur_sigma_px, noise_sigma, seed)
+
+    truth: dict[str, np.ndarray] = {}
+    obj = board.object_points_m()
+    if obj:
+        keys = list(obj)
+        pts = np.array([obj[k] for k in keys]) @ R.T + t
+        uv = np.asarray(lens_project(pts), dtype=np.float64).reshape(-1, 2)
+        for k, p, q in zip(keys, pts, uv, strict=True):
+            # Corners seen from behind the board are not visible.
+            facing = float(normal @ p) > 0  # camera on the printed side: normal . p_cam > 0
+            if facing and _inside_image(q, width, height):
                 truth[k] = q
     return image, truth
