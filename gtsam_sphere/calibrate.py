@@ -7,7 +7,6 @@ job on a :class:`~gtsam_sphere.dataset.Dataset`.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 
@@ -27,6 +26,7 @@ from .graph import (
     NoiseOptions,
     point_key,
     pose_key,
+    robust_sigma_px,
     robust_weight,
 )
 from .optimize import OptimizationResult, OptimizerKind, OptimizerOptions, make_ordering, optimize
@@ -37,7 +37,6 @@ BROWN_DEFAULT_TERMS = ("k1", "k2", "k3", "p1", "p2")
 RADIAL_DEFAULT_TERMS = ("p1", "p2", "a1", "a2")
 
 # median of the norm of a 2-D standard normal vector: sqrt(2 ln 2)
-_MEDIAN_CHI2 = math.sqrt(2.0 * math.log(2.0))
 #: floor of the estimated image noise (px): no detector measures better, and below it
 #: perfect (simulated) data whitens residuals at the projection's numerical noise, so LM
 #: stalls and the covariance looks singular (seen at 1e-4 px; 0.001 px took 194 iterations)
@@ -191,7 +190,7 @@ def adjust(
         # start is not frozen by tiny robust weights, then shrink to the estimated noise
         problem.build()
         r0 = np.linalg.norm(problem.residuals_px(values), axis=1)
-        sigma = max(float(np.median(r0) / _MEDIAN_CHI2), problem.noise.sigma_px)
+        sigma = robust_sigma_px(r0, problem.noise.sigma_px)
         problem.noise = NoiseOptions(sigma, problem.noise.loss, problem.noise.loss_threshold)
         if first_stage_mask is not None and len(first_stage_mask) == len(r0):
             # RANSAC's verdict, plus what the start already predicts well (RANSAC's lens
@@ -237,7 +236,7 @@ def adjust(
         if not estimate_sigma:
             break
         r = np.linalg.norm(problem.residuals_px(result.values), axis=1)
-        sigma = max(float(np.median(r) / _MEDIAN_CHI2), MIN_SIGMA_PX)
+        sigma = robust_sigma_px(r, MIN_SIGMA_PX)
         old = problem.noise.sigma_px
         if progress:
             progress(f"{label}robust scale estimate sigma = {sigma:.4f} px (was {old:.4f})")
@@ -277,7 +276,7 @@ def adjust(
 def _robust_cost(problem: BundleProblem, values: gtsam.Values, loss: Loss) -> float:
     """Robust cost of every observation at ``values``, with the scale of their median."""
     r = np.linalg.norm(problem.residuals_px(values), axis=1)
-    sigma = max(float(np.median(r) / _MEDIAN_CHI2), 1e-9)
+    sigma = robust_sigma_px(r, 1e-9)
     k = problem.noise.loss_threshold
     _, rho = robust_weight(r / sigma, Loss.HUBER if loss is Loss.L2 else loss, k)
     return float(np.sum(rho)) * sigma**2

@@ -16,6 +16,7 @@ from sklearn.model_selection import KFold
 from sklearn.neighbors import KNeighborsRegressor, NearestNeighbors
 
 from .camera import check_uv
+from .graph import robust_sigma_px
 
 K_GRID = (3, 5, 8, 12, 16, 24, 32, 48, 64)
 DEGREES = (0, 1)
@@ -337,8 +338,7 @@ def consistent_with_neighbours(
     for _ in range(passes):
         pred = local_fit(uv_px, target_px, uv_px, ind, dist, "uniform", 1, good[ind])
         dev = np.linalg.norm(target_px - pred, axis=1)
-        scale = np.median(dev[good]) / np.sqrt(2.0 * np.log(2.0))
-        good = dev <= threshold * max(scale, 1e-9)
+        good = dev <= threshold * robust_sigma_px(dev[good], 1e-9)
     return good
 
 

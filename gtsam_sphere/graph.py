@@ -82,6 +82,22 @@ def robust_weight(r: np.ndarray, loss: Loss | str, k: float) -> tuple[np.ndarray
     raise ValueError(f"unknown loss {loss!r}")
 
 
+def robust_sigma_px(residual_norms_px: np.ndarray, floor_px: float = 0.0) -> float:
+    """Robust image-noise sigma (px) from 2-D residual norms (N,): ``median / sqrt(2 ln 2)``.
+
+    The median of the norm of a 2-D isotropic normal with per-axis sigma ``s`` is
+    ``s sqrt(2 ln 2)``; non-finite norms are ignored. Never below ``floor_px``.
+    """
+    r = np.asarray(residual_norms_px, dtype=float).ravel()
+    r = r[np.isfinite(r)]
+    if len(r) == 0:
+        return float(floor_px)
+    return max(float(np.median(r)) / _MEDIAN_NORM_2D, float(floor_px))
+
+
+_MEDIAN_NORM_2D = float(np.sqrt(2.0 * np.log(2.0)))
+
+
 @dataclass
 class NoiseOptions:
     """Measurement noise and robust loss.

@@ -37,12 +37,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from .camera import SphereCamera, check_uv
+from .graph import robust_sigma_px
 from .p3p import ransac_pose
 
 __all__ = ["ResectionResult", "resect"]
 
 # median of the norm of a 2-D standard normal vector: sqrt(2 ln 2)
-_MEDIAN_CHI2 = math.sqrt(2.0 * math.log(2.0))
 
 
 @dataclass
@@ -170,7 +170,7 @@ def _adjust_pose(
     _, e = residual(R, t)
     r0 = np.linalg.norm(e, axis=1)
     if sigma_px is None:
-        sigma = max(float(np.median(r0[np.isfinite(r0)]) / _MEDIAN_CHI2), min_sigma_px)
+        sigma = robust_sigma_px(r0, min_sigma_px)
     else:
         sigma = float(sigma_px)
     iterations = 0
@@ -215,7 +215,7 @@ def _adjust_pose(
         if sigma_px is not None:
             break
         r = np.linalg.norm(e, axis=1)
-        new = max(float(np.median(r[np.isfinite(r)]) / _MEDIAN_CHI2), min_sigma_px)
+        new = robust_sigma_px(r, min_sigma_px)
         done = abs(new - sigma) <= 0.05 * sigma
         sigma = new
         if done:

@@ -23,3 +23,27 @@ def checkpoints_of(sim):
     ids = [t["id"] for t in sim.checkpoints["targets"]]
     xyz = np.array([t["xyz"] for t in sim.checkpoints["targets"]])
     return ids, xyz
+
+
+def bare_calibration(camera, uv_px=None):
+    """A Calibration holding only ``camera`` (and, optionally, observed pixels (N, 2))."""
+    from gtsam_sphere.calibration import Calibration
+
+    extra = {}
+    if uv_px is not None:
+        extra["observations"] = {"uv_px": uv_px, "residual_px": np.zeros_like(uv_px)}
+    return Calibration(
+        model="brown",
+        camera=camera,
+        image_ids=[],
+        cam_from_world_R=np.zeros((0, 3, 3)),
+        cam_from_world_t=np.zeros((0, 3)),
+        target_ids=[],
+        target_xyz=np.zeros((0, 3)),
+        statistics={
+            "rms_px": 0.1,
+            "n_observations": 0 if uv_px is None else len(uv_px),
+            "n_rejected": 0,
+        },
+        extra=extra,
+    )

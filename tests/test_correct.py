@@ -101,3 +101,18 @@ def test_blunders_are_left_out_of_training_but_not_the_border():
     assert np.mean(good[~bad]) > 0.99
     border = np.min(np.minimum(uv, 1000 - uv), axis=1) < 30
     assert np.mean(good[border & ~bad]) > 0.98
+
+
+def test_robust_sigma_of_2d_residual_norms():
+    """One robust scale for calibrate, resect and the kNN training set."""
+    from gtsam_sphere.graph import robust_sigma_px
+
+    rng = np.random.default_rng(4)
+    r = np.linalg.norm(rng.normal(0.0, 0.3, (100_000, 2)), axis=1)
+    r[:20_000] += 50.0  # 20% blunders move the median only a little
+    assert abs(robust_sigma_px(r[20_000:]) - 0.3) < 0.01
+    assert robust_sigma_px(r) < 0.45
+    one = robust_sigma_px(np.array([np.nan, np.inf, 1.0]))
+    assert one == pytest.approx(1.0 / np.sqrt(2 * np.log(2)))
+    assert robust_sigma_px(np.zeros(5), 0.005) == 0.005
+    assert robust_sigma_px(np.array([np.nan]), 0.1) == 0.1

@@ -7,9 +7,9 @@ import json
 import cv2
 import numpy as np
 import pytest
+from helpers import bare_calibration
 
 from gtsam_sphere import SphereCamera, load_calibration
-from gtsam_sphere.calibration import Calibration
 from gtsam_sphere.cli import main
 from gtsam_sphere.dataset import DatasetError
 from gtsam_sphere.export import (
@@ -201,22 +201,9 @@ def test_project_rays_handles_the_back_half_past_a_fold(cam):
     assert np.all(np.isfinite(uv))
 
 
-def _calibration(cam, obs) -> Calibration:
-    return Calibration(
-        model="brown",
-        camera=cam,
-        image_ids=[],
-        cam_from_world_R=np.zeros((0, 3, 3)),
-        cam_from_world_t=np.zeros((0, 3)),
-        target_ids=[],
-        target_xyz=np.zeros((0, 3)),
-        statistics={"rms_px": 0.1, "n_observations": len(obs), "n_rejected": 0},
-        extra={"observations": {"uv_px": obs, "residual_px": np.zeros_like(obs)}},
-    )
-
 
 def test_cli_writes_every_target_and_prints_the_residual(cam, obs75, tmp_path, capsys):
-    path = _calibration(cam, obs75).save(tmp_path / "calib.json")
+    path = bare_calibration(cam, obs75).save(tmp_path / "calib.json")
     calib = load_calibration(path)
     for target in TARGETS:
         ext = "yaml" if target.startswith("kalibr") else "json"
@@ -254,4 +241,4 @@ def test_cli_bad_input(tmp_path, capsys):
         d = ring - [cam.xp, cam.yp]
         r_deg = np.degrees(np.linalg.norm(d, axis=1) / cam.c)
         patch = (r_deg > 93) & (np.abs(np.arctan2(d[:, 1], d[:, 0]) - 0.6435) < 0.1)  # corner
-        export_calibration(_calibration(cam, ring[patch]), "opencv-fisheye")
+        export_calibration(bare_calibration(cam, ring[patch]), "opencv-fisheye")

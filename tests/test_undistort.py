@@ -5,9 +5,9 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
+from helpers import bare_calibration
 
 from gtsam_sphere import SphereCamera
-from gtsam_sphere.calibration import Calibration
 from gtsam_sphere.cli import main
 from gtsam_sphere.export import incidence_deg, pixel_rays
 from gtsam_sphere.undistort import (
@@ -104,21 +104,9 @@ def test_interpolated_tables_match_the_exact_ones(cam):
     assert fast.interpolation_error_px <= d.max() + 1e-6
 
 
-def _calibration(cam) -> Calibration:
-    return Calibration(
-        model="brown",
-        camera=cam,
-        image_ids=[],
-        cam_from_world_R=np.zeros((0, 3, 3)),
-        cam_from_world_t=np.zeros((0, 3)),
-        target_ids=[],
-        target_xyz=np.zeros((0, 3)),
-        statistics={"rms_px": 0.1, "n_observations": 0, "n_rejected": 0},
-    )
-
 
 def test_cli(cam, tmp_path, capsys):
-    calib = _calibration(cam).save(tmp_path / "calib.json")
+    calib = bare_calibration(cam).save(tmp_path / "calib.json")
     img_path = tmp_path / "raw.png"
     img = np.zeros((H, W, 3), np.uint8)
     img[::20] = 255
