@@ -463,6 +463,9 @@ class Initialisation:
     f_px : float
     inlier_mask : ndarray of bool, shape (N,) or None
         Per observation of ``dataset``: consistent with its image's RANSAC pose.
+    principal_point_px : ndarray, shape (2,) or None
+        The initialisation's principal point (the image centre, or the centre of the
+        disc the observations fill, refitted with the poses); None: the image centre.
     """
 
     dataset: Dataset
@@ -472,6 +475,7 @@ class Initialisation:
     mapping: str
     f_px: float
     inlier_mask: np.ndarray | None = None
+    principal_point_px: np.ndarray | None = None
 
 
 def initialise(
@@ -497,7 +501,7 @@ def initialise(
         rng=np.random.default_rng(seed),
         progress=say,
     )
-    say(f"initial lens hypothesis: {init.mapping}, f = {init.f_px:.1f} px")
+    say(f"initial lens: {init.lens.describe()} (family {init.mapping}, f = {init.f_px:.1f} px)")
     n_input_images = len(dataset.image_ids)
     R, t = init.cam_from_world_R, init.cam_from_world_t
     inliers = np.asarray(init.inlier_mask, bool)[init.ok[dataset.obs_image]]
@@ -509,7 +513,14 @@ def initialise(
         R, t = R[init.ok], t[init.ok]
         dataset = dataset.subset_images(init.ok, reasons)
     return Initialisation(
-        dataset, R, t, n_input_images, init.mapping, float(init.f_px), inliers
+        dataset,
+        R,
+        t,
+        n_input_images,
+        init.mapping,
+        float(init.f_px),
+        inliers,
+        init.principal_point_px.copy(),
     )
 
 
@@ -584,6 +595,8 @@ def calibrate(
     n_input_images = init.n_input_images
 
     pp = np.array([(dataset.width - 1) / 2.0, (dataset.height - 1) / 2.0])
+    if init.principal_point_px is not None:
+        pp = np.asarray(init.principal_point_px, float)
     pc = np.einsum("nij,nj->ni", init_R[dataset.obs_image], dataset.target_xyz[dataset.obs_target])
     pc += init_t[dataset.obs_image]
     c0 = initial_principal_distance(dataset.uv_px, pc, pp)

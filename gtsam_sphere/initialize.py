@@ -1,46 +1,53 @@
-"""Initial camera poses without prior knowledge of the lens (Chow et al. 2018, section 4).
+"""Initial camera poses and lens without prior knowledge of the lens (Chow et al. 2018, sec. 4).
 
-The paper seeds its adjustment with P3P poses computed from surveyed (approximate) target
-coordinates. Here the lens is unknown, so P3P runs on bearings from *hypothetical* radial
-mappings with the principal point at the image centre ``((width-1)/2, (height-1)/2)``:
+The paper seeds its adjustment with P3P poses from surveyed (approximate) target
+coordinates. Here the lens is unknown, so P3P runs on bearings from *hypotheses* of the
+lens: a principal point, a radial family and a focal scale ``f`` (``dr/dalpha`` on the
+axis, px, comparable across families):
 
-====================  ===================  ==================================
-``mapping``           radius ``r(alpha)``  domain of ``alpha``
-====================  ===================  ==================================
-``"pinhole"``         ``f tan(alpha)``     [0, 90) deg
-``"equidistant"``     ``f alpha``          [0, 180] deg (may look behind)
-``"sphere"``          ``f sin(alpha)``     [0, 90] deg (front hemisphere)
-====================  ===================  ==================================
+=================  =========================  ==================================
+``mapping``        radius ``r(alpha)``        domain of the incidence ``alpha``
+=================  =========================  ==================================
+``"pinhole"``      ``f tan(alpha)``           [0, 85] deg
+``"stereographic"````2 f tan(alpha / 2)``      [0, 175] deg (catadioptric-like)
+``"equidistant"``  ``f alpha``                [0, 180] deg (may look behind)
+``"equisolid"``    ``2 f sin(alpha / 2)``     [0, 180] deg
+``"sphere"``       ``f sin(alpha)``           [0, 90] deg (orthographic)
+``"fitted"``       ``f g(alpha)``, ``g`` odd  where ``g`` increases (refined, step 4)
+=================  =========================  ==================================
 
-Every mapping has ``dr/dalpha = f`` on the axis, so ``f_px`` is comparable across kinds.
+What the pixels show comes first:
 
-Strategy
---------
-1. Coarse search: for each kind, a geometric grid of ``f`` (ratio ``1.15`` between
-   neighbours, ~60 hypotheses in all) spanning diagonal fields of view of 40 deg up to
-   160 (pinhole), 360 (equidistant; also 360 deg on a circle of 0.4 times the short
-   side: circular fisheyes) or 180 deg (sphere; down to an image circle of 0.4 times
-   the short side). Each hypothesis runs :func:`~gtsam_sphere.p3p.ransac_pose`
-   (no refinement, 64 samples) on the 4 images with most observations with a loose
-   threshold ``3 * threshold_rad``, scored by the MSAC cost ``sum(min(err^2, thr^2))``
-   (inliers first, then their errors) twice: over all observations, and over the
-   central ones only (radius below a quarter of the short side, where a few percent of
-   focal error cannot spoil mappings that are steep at the rim, like the sphere's near
-   90 deg). The best ``f`` of each criterion is a candidate.
-2. Scan: 13 focal lengths 2.3 % apart around each candidate, same 4 images, threshold
-   ``2 * threshold_rad``, all observations.
-3. Zoom, for candidates whose scan cost is within 1.5 times the best: 5 focal lengths
-   0.6 % apart plus a parabolic step, with pose refinement and ``threshold_rad``, on up
-   to 8 *scoring images*. The lowest cost over kinds and focal lengths wins. Every
-   evaluation uses the same random seeds (common random numbers) so costs compare
-   hypotheses, not luck.
-4. All images run with the chosen hypothesis and the final threshold.
+1. **Where the image is.** The principal point hypotheses are the image centre and,
+   when the observations fill a disc (a circular fisheye smaller than the sensor, a
+   catadioptric image), the centre of that disc (circle fitted to the convex hull of
+   every observation). ``R_obs``, the radius that holds 99 % of the observations around
+   it, bounds the focal scale of every family: the largest observed radius is reached
+   at an incidence no larger than the family's domain, and the field seen is at least
+   ``_MIN_HALF_FOV_DEG``.
+2. **Coarse search** over principal points x families x a geometric grid of ``f``
+   (ratio 1.15), RANSAC P3P (64 samples, no refinement) on the 4 images with most
+   observations. Every hypothesis is scored in **pixels**, the only scale common to all
+   hypotheses: each image's pose reprojects its targets through the hypothesis and the
+   MSAC cost ``sum(min(e_px^2, thr_px^2))`` uses ``thr_px = 3 % of R_obs``. (Angular
+   costs favour long focal lengths, whose rays are all close together: a 250 deg
+   lens on a small circle was once taken for a 16 deg "sphere".)
+3. **Scan and zoom**: 13 values of ``f`` 2.3 % apart around the best candidates
+   (threshold 2 %), then 5 values 0.6 % apart with pose refinement on up to 8 images
+   (threshold 1 %, parabolic step).
+4. **Refit**: for the best hypotheses, alternate poses (RANSAC on the hypothesis'
+   bearings) and a robust *linear* fit of the principal point and an odd polynomial
+   ``r(alpha) = b1 alpha + b3 alpha^3 + ...`` to the inliers. This reaches lenses
+   between the families (Kannala-Brandt, unified, double sphere) and principal points
+   off the image centre. The lowest pixel cost wins.
+5. **All images** with the winner; when RANSAC rejects most observations the next
+   hypothesis is tried, and when none explains the data :class:`InitialisationError`
+   says so at once (seconds, not after a long failing adjustment).
 
-Threshold choice: ``max(threshold_rad, threshold_px / f_px)`` with defaults 0.01 rad and
-4 px. Approximate targets with 1 cm isotropic noise seen from 2-4 m move by
-0.0025-0.005 rad (1 sigma), so 0.01 rad keeps 86-99 % of them; 4 px is the pixel-noise
-floor for short focal lengths. Blunders of tens of pixels are rejected when they exceed
-the threshold; the later robust adjustment deals with the rest.
+Every evaluation of a hypothesis uses the same random seeds (common random numbers) so
+costs compare hypotheses, not luck. The final inlier threshold is
+``max(1 % of R_obs, threshold_rad * f, threshold_px)``: approximate targets with 1 cm
+noise seen from 2-4 m move by 0.0025-0.005 rad, which ``threshold_rad = 0.01`` keeps.
 """
 
 from __future__ import annotations
@@ -50,20 +57,269 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .p3p import angular_errors_rad, ransac_pose
+from .p3p import ransac_pose
 
-__all__ = ["MAPPINGS", "InitialisationResult", "bearings_from_pixels", "initialize_poses"]
+__all__ = [
+    "MAPPINGS",
+    "InitialisationError",
+    "InitialisationResult",
+    "LensHypothesis",
+    "bearings_from_pixels",
+    "initialize_poses",
+    "observed_disc",
+]
 
-MAPPINGS: tuple[str, ...] = ("pinhole", "equidistant", "sphere")
+MAPPINGS: tuple[str, ...] = ("pinhole", "stereographic", "equidistant", "equisolid", "sphere")
 
 _GRID_RATIO = 1.15  # neighbouring coarse focal hypotheses differ by this factor
-_MAX_FOV_DEG = {"pinhole": 160.0, "equidistant": 360.0, "sphere": 180.0}
-_MIN_FOV_DEG = 40.0
+_DOMAIN_DEG = {
+    "pinhole": 85.0,
+    "stereographic": 175.0,
+    "equidistant": 180.0,
+    "equisolid": 180.0,
+    "sphere": 90.0,
+}
+_MIN_HALF_FOV_DEG = 12.0  # the observed field is at least 24 deg across
+_ALPHA0_RAD = np.pi / 2  # scale of alpha in the refit polynomial (conditioning)
+_N_POLY = 4  # odd terms alpha, alpha^3, alpha^5, alpha^7 in the refit
+_MIN_INLIER_FRACTION = 0.5  # below this the hypothesis is "mostly rejected"
+
+
+class InitialisationError(ValueError):
+    """No lens hypothesis explains the observations (or no image can be posed)."""
+
+
+def _rho(mapping: str, alpha: np.ndarray) -> np.ndarray:
+    """Radius per unit focal length, ``r / f``, at incidence ``alpha`` (rad); NaN outside."""
+    a = np.asarray(alpha, dtype=float)
+    with np.errstate(invalid="ignore"):
+        inside = (a >= 0) & (a <= np.radians(_DOMAIN_DEG[mapping]) + 1e-12)
+        a_in = np.where(inside, a, 0.0)
+        if mapping == "pinhole":
+            r = np.tan(a_in)
+        elif mapping == "stereographic":
+            r = 2.0 * np.tan(0.5 * a_in)
+        elif mapping == "equidistant":
+            r = a_in
+        elif mapping == "equisolid":
+            r = 2.0 * np.sin(0.5 * a_in)
+        else:
+            r = np.sin(a_in)
+    return np.where(inside, r, np.nan)
+
+
+def _alpha_from_radius(r_px: np.ndarray, mapping: str, f_px: float) -> np.ndarray:
+    """Incidence angle (rad) of image radius ``r_px``; NaN outside the mapping's domain."""
+    if mapping not in _DOMAIN_DEG:
+        raise ValueError(f"unknown mapping {mapping!r}; expected one of {MAPPINGS}")
+    rho = np.asarray(r_px, dtype=float) / f_px
+    with np.errstate(invalid="ignore"):
+        if mapping == "pinhole":
+            a = np.arctan(rho)
+        elif mapping == "stereographic":
+            a = 2.0 * np.arctan(0.5 * rho)
+        elif mapping == "equidistant":
+            a = rho.copy()
+        elif mapping == "equisolid":
+            a = 2.0 * np.arcsin(np.minimum(0.5 * rho, 1.0))
+            a = np.where(0.5 * rho <= 1.0, a, np.nan)
+        else:
+            a = np.where(rho <= 1.0, np.arcsin(np.minimum(rho, 1.0)), np.nan)
+    return np.where(a <= np.radians(_DOMAIN_DEG[mapping]) + 1e-12, a, np.nan)
+
+
+def bearings_from_pixels(
+    uv_px: np.ndarray, mapping: str, f_px: float, principal_point_px
+) -> np.ndarray:
+    """Unproject pixels to unit rays with one of the generic radial mappings.
+
+    Parameters
+    ----------
+    uv_px : (N, 2) array
+        Pixel coordinates (u right, v down, (0, 0) the centre of the top-left pixel).
+    mapping : str
+        One of :data:`MAPPINGS` (table in the module docstring), with ``alpha`` the
+        angle between the ray and the optical axis (+z).
+    f_px : float
+        Focal scale, px.
+    principal_point_px : (2,) array-like
+        Principal point (u, v), px.
+
+    Returns
+    -------
+    (N, 3) array
+        Unit rays in the camera frame (x right, y down, z forward); they point behind the
+        camera (z < 0) for incidences past 90 deg. Rows are NaN for pixels outside the
+        mapping's domain (e.g. ``r > f`` for "sphere", ``r > pi f`` for "equidistant") or
+        non-finite input.
+    """
+    if not np.isfinite(f_px) or f_px <= 0:
+        raise ValueError(f"f_px must be a positive finite number, got {f_px!r}")
+    uv = np.asarray(uv_px, dtype=float).reshape(-1, 2)
+    d = uv - np.asarray(principal_point_px, dtype=float).reshape(2)
+    r = np.hypot(d[:, 0], d[:, 1])
+    return _rays(d, r, _alpha_from_radius(r, mapping, f_px))
+
+
+def _rays(d: np.ndarray, r: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    """Unit rays (N, 3) from offsets ``d`` (N, 2) to the principal point, radii and angles."""
+    safe_r = np.where(r > 0, r, 1.0)
+    sin_a = np.sin(alpha)
+    rays = np.empty((d.shape[0], 3))
+    rays[:, 0] = np.where(r > 0, sin_a * d[:, 0] / safe_r, 0.0)
+    rays[:, 1] = np.where(r > 0, sin_a * d[:, 1] / safe_r, 0.0)
+    rays[:, 2] = np.cos(alpha)
+    rays[~np.isfinite(alpha)] = np.nan
+    return rays
+
+
+@dataclass(frozen=True)
+class LensHypothesis:
+    """A central radial lens: principal point, family and focal scale.
+
+    Attributes
+    ----------
+    mapping : str
+        One of :data:`MAPPINGS`, or ``"fitted"`` (then ``coeffs`` holds the mapping).
+    f_px : float
+        ``dr/dalpha`` on the optical axis, px.
+    principal_point_px : (2,) array
+        Principal point (u, v), px.
+    coeffs : (K,) array or None
+        For ``"fitted"``: ``r(alpha) = f_px * sum_k coeffs[k] * alpha^(2k+1)`` with
+        ``coeffs[0] = 1``.
+    alpha_max_rad : float
+        Largest incidence the hypothesis maps (its domain, or where the fitted
+        polynomial stops increasing or leaves the fitted range).
+    """
+
+    mapping: str
+    f_px: float
+    principal_point_px: np.ndarray
+    coeffs: np.ndarray | None = None
+    alpha_max_rad: float = float("nan")
+
+    def _table(self):
+        """(alpha (K,), r/f (K,)) over [0, pi]: the polynomial up to ``alpha_max_rad``,
+        continued linearly with its end slope, so pixels beyond the fitted range still
+        unproject (monotone) and can join the inliers."""
+        a = np.linspace(0.0, np.pi, 2049)
+        poly = self._poly()
+        a_end = self.alpha_max_rad
+        rho_end = np.polynomial.polynomial.polyval(a_end, poly)
+        slope = np.polynomial.polynomial.polyval(a_end, np.polynomial.polynomial.polyder(poly))
+        rho = np.where(
+            a <= a_end,
+            np.polynomial.polynomial.polyval(a, poly),
+            rho_end + max(float(slope), 0.05) * (a - a_end),
+        )
+        return a, rho
+
+    def _poly(self):
+        p = np.zeros(2 * len(self.coeffs))
+        p[1::2] = self.coeffs
+        return p
+
+    def radius_px(self, alpha_rad: np.ndarray) -> np.ndarray:
+        """Image radius (px) at incidence ``alpha_rad`` (N,); NaN outside the domain."""
+        if self.mapping != "fitted":
+            return self.f_px * _rho(self.mapping, alpha_rad)
+        a, rho = self._table()
+        alpha = np.asarray(alpha_rad, dtype=float)
+        with np.errstate(invalid="ignore"):
+            out = self.f_px * np.interp(alpha, a, rho)
+            return np.where((alpha >= 0) & (alpha <= a[-1]), out, np.nan)
+
+    def alpha_rad(self, r_px: np.ndarray) -> np.ndarray:
+        """Incidence (rad) of image radius ``r_px`` (N,); NaN outside the domain."""
+        if self.mapping != "fitted":
+            return _alpha_from_radius(r_px, self.mapping, self.f_px)
+        a, rho = self._table()
+        rr = np.asarray(r_px, dtype=float) / self.f_px
+        with np.errstate(invalid="ignore"):
+            return np.where(rr <= rho[-1], np.interp(rr, rho, a), np.nan)
+
+    def rays(self, uv_px: np.ndarray) -> np.ndarray:
+        """Unit rays (N, 3), camera frame, of pixels (N, 2); NaN outside the domain."""
+        d = np.asarray(uv_px, dtype=float) - self.principal_point_px
+        r = np.hypot(d[:, 0], d[:, 1])
+        return _rays(d, r, self.alpha_rad(r))
+
+    def project(self, points_cam: np.ndarray) -> np.ndarray:
+        """Pixels (N, 2) of camera-frame points (N, 3); NaN outside the domain."""
+        p = np.asarray(points_cam, dtype=float)
+        s = np.hypot(p[:, 0], p[:, 1])
+        alpha = np.arctan2(s, p[:, 2])
+        r = self.radius_px(alpha)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            scale = np.where(s > 0, r / np.where(s > 0, s, 1.0), 0.0)
+        return self.principal_point_px + scale[:, None] * p[:, :2]
+
+    def describe(self) -> str:
+        """One line for progress output."""
+        pp = self.principal_point_px
+        return f"{self.mapping}, f = {self.f_px:.1f} px, principal point ({pp[0]:.1f}, {pp[1]:.1f})"
+
+
+def _family(mapping: str, f_px: float, pp: np.ndarray) -> LensHypothesis:
+    return LensHypothesis(mapping, float(f_px), np.asarray(pp, float), None,
+                          float(np.radians(_DOMAIN_DEG[mapping])))
+
+
+def observed_disc(uv_px: np.ndarray, width: int, height: int):
+    """The disc that the observations fill, if they fill one.
+
+    A circular fisheye smaller than the sensor, or a catadioptric image, puts every
+    observation inside a disc around its principal point. The circle is fitted (linear
+    least squares, then the radius that holds every hull vertex) to the convex hull of
+    the observations; it counts as a disc when the hull vertices lie within 4 % of its
+    radius and surround its centre (no angular gap above 100 deg).
+
+    Parameters
+    ----------
+    uv_px : (N, 2) array
+        Observed pixels.
+    width, height : int
+        Image size, px.
+
+    Returns
+    -------
+    (centre_px (2,), radius_px) or None
+    """
+    uv = np.asarray(uv_px, dtype=float)
+    uv = uv[np.all(np.isfinite(uv), axis=1)]
+    if uv.shape[0] < 20:
+        return None
+    import cv2
+
+    hull = cv2.convexHull(uv.astype(np.float32)).reshape(-1, 2).astype(float)
+    if hull.shape[0] < 8:
+        return None
+    # densify the hull edges so long edges (clipped borders) weigh by their length
+    pts = []
+    for a, b in zip(hull, np.roll(hull, -1, axis=0)):
+        n = max(int(np.hypot(*(b - a)) / (0.01 * max(width, height))), 1)
+        pts.append(a + np.linspace(0, 1, n, endpoint=False)[:, None] * (b - a))
+    pts = np.concatenate(pts)
+    A = np.column_stack([2 * pts, np.ones(len(pts))])
+    sol = np.linalg.lstsq(A, (pts**2).sum(axis=1), rcond=None)[0]
+    centre = sol[:2]
+    radius = float(np.sqrt(max(sol[2] + centre @ centre, 0.0)))
+    if not np.isfinite(radius) or radius <= 0:
+        return None
+    dev = np.abs(np.hypot(*(pts - centre).T) - radius)
+    if np.percentile(dev, 90) > 0.04 * radius:
+        return None
+    ang = np.sort(np.arctan2(*(hull - centre).T[::-1]))
+    gaps = np.diff(np.concatenate([ang, ang[:1] + 2 * np.pi]))
+    if gaps.max() > np.radians(100.0):
+        return None
+    return centre, float(np.hypot(*(hull - centre).T).max())
 
 
 @dataclass
 class InitialisationResult:
-    """Poses from :func:`initialize_poses`.
+    """Poses and lens from :func:`initialize_poses`.
 
     Attributes
     ----------
@@ -71,11 +327,17 @@ class InitialisationResult:
     cam_from_world_t : (M, 3) translations, metres, NaN for images that failed.
     ok : (M,) bool, image initialised.
     inlier_mask : (N,) bool per observation (False for observations of failed images).
-    mapping : chosen hypothesis kind, one of :data:`MAPPINGS`.
-    f_px : chosen focal scale, px (``dr/dalpha`` on the axis).
+    mapping : family of the chosen hypothesis, one of :data:`MAPPINGS`.
+    f_px : focal scale of that family hypothesis, px (``dr/dalpha`` on the axis).
     failures : image index -> human-readable reason.
-    threshold_rad : angular inlier threshold of the final pass, radians.
-    scores : (mapping, f_px) -> MSAC cost (rad^2) of every hypothesis evaluated.
+    threshold_rad : angular inlier threshold of the final pass on the axis, radians
+        (``threshold_px / lens.f_px``).
+    scores : (mapping, f_px) -> pixel MSAC cost (px^2) of the hypotheses zoomed in on.
+    lens : the hypothesis the poses were computed with (``mapping``'s, or its refit:
+        ``lens.mapping == "fitted"``), with its principal point.
+    threshold_px : pixel inlier threshold of the final pass.
+    disc : (centre_px (2,), radius_px) of the disc the observations fill, or None.
+    tried : one line per hypothesis tried in the final pass and rejected.
     """
 
     cam_from_world_R: np.ndarray
@@ -87,169 +349,109 @@ class InitialisationResult:
     failures: dict[int, str]
     threshold_rad: float = float("nan")
     scores: dict[tuple[str, float], float] = field(default_factory=dict)
+    lens: LensHypothesis | None = None
+    threshold_px: float = float("nan")
+    disc: tuple | None = None
+    tried: list[str] = field(default_factory=list)
 
-
-def _alpha_from_radius(r_px: np.ndarray, mapping: str, f_px: float) -> np.ndarray:
-    """Incidence angle (rad) of image radius ``r_px``; NaN outside the mapping's domain."""
-    rho = np.asarray(r_px, dtype=float) / f_px
-    if mapping == "pinhole":
-        return np.arctan(rho)
-    if mapping == "equidistant":
-        return np.where(rho <= np.pi, rho, np.nan)
-    if mapping == "sphere":
-        with np.errstate(invalid="ignore"):
-            return np.where(rho <= 1.0, np.arcsin(np.minimum(rho, 1.0)), np.nan)
-    raise ValueError(f"unknown mapping {mapping!r}; expected one of {MAPPINGS}")
-
-
-def bearings_from_pixels(
-    uv_px: np.ndarray, mapping: str, f_px: float, principal_point_px
-) -> np.ndarray:
-    """Unproject pixels to unit rays with a generic radial mapping.
-
-    Parameters
-    ----------
-    uv_px : (N, 2) array
-        Pixel coordinates (u right, v down, (0, 0) the centre of the top-left pixel).
-    mapping : {"pinhole", "equidistant", "sphere"}
-        ``r = f tan(alpha)``, ``r = f alpha`` or ``r = f sin(alpha)`` (front hemisphere),
-        with ``alpha`` the angle between the ray and the optical axis (+z).
-    f_px : float
-        Focal scale, px.
-    principal_point_px : (2,) array-like
-        Principal point (u, v), px.
-
-    Returns
-    -------
-    (N, 3) array
-        Unit rays in the camera frame (x right, y down, z forward); they point behind the
-        camera (z < 0) for equidistant radii beyond ``f * pi / 2``. Rows are NaN for
-        pixels outside the mapping's domain (``r > f`` for "sphere", ``r > pi f`` for
-        "equidistant") or non-finite input.
-    """
-    if not np.isfinite(f_px) or f_px <= 0:
-        raise ValueError(f"f_px must be a positive finite number, got {f_px!r}")
-    uv = np.asarray(uv_px, dtype=float).reshape(-1, 2)
-    pp = np.asarray(principal_point_px, dtype=float).reshape(2)
-    d = uv - pp
-    r = np.hypot(d[:, 0], d[:, 1])
-    alpha = _alpha_from_radius(r, mapping, f_px)
-    safe_r = np.where(r > 0, r, 1.0)
-    sin_a = np.sin(alpha)
-    rays = np.empty((uv.shape[0], 3))
-    rays[:, 0] = np.where(r > 0, sin_a * d[:, 0] / safe_r, 0.0)
-    rays[:, 1] = np.where(r > 0, sin_a * d[:, 1] / safe_r, 0.0)
-    rays[:, 2] = np.cos(alpha)
-    rays[~np.isfinite(alpha)] = np.nan
-    return rays
-
-
-def _focal_grid(mapping: str, width: int, height: int) -> np.ndarray:
-    """Coarse focal hypotheses (px) for one mapping, geometric with ratio ``_GRID_RATIO``."""
-    r_max = np.hypot((width - 1) / 2.0, (height - 1) / 2.0)
-
-    def f_of_fov(fov_deg: float) -> float:
-        half = np.radians(fov_deg) / 2.0
-        if mapping == "pinhole":
-            return r_max / np.tan(half)
-        if mapping == "equidistant":
-            return r_max / half
-        return r_max / np.sin(min(half, np.pi / 2))
-
-    f_hi = f_of_fov(_MIN_FOV_DEG)
-    f_lo = f_of_fov(_MAX_FOV_DEG[mapping])
-    if mapping == "sphere":  # circular orthographic image inside the frame
-        f_lo = min(f_lo, 0.4 * min(width, height))
-    if mapping == "equidistant":  # circular fisheye: 360 deg on a circle inside the frame
-        f_lo = min(f_lo, 0.4 * min(width, height) / np.pi)
-    n = int(np.ceil(np.log(f_hi / f_lo) / np.log(_GRID_RATIO))) + 1
-    return np.geomspace(f_lo, f_hi, n)
-
-
-def _g(mapping: str, alpha: np.ndarray) -> np.ndarray:
-    """Radius per unit focal length, ``r / f``, at incidence ``alpha`` (rad)."""
-    if mapping == "pinhole":
-        return np.where(alpha < np.radians(85.0), np.tan(np.minimum(alpha, 1.5)), np.nan)
-    if mapping == "equidistant":
-        return alpha
-    return np.where(alpha <= np.pi / 2, np.sin(alpha), np.nan)
+    @property
+    def principal_point_px(self) -> np.ndarray:
+        """(2,) principal point of :attr:`lens`, px."""
+        return np.asarray(self.lens.principal_point_px, float)
 
 
 class _Problem:
-    """Observations grouped by image, with per-hypothesis RANSAC evaluation."""
+    """Observations grouped by image; pose and pixel cost of one image under a hypothesis."""
 
-    def __init__(self, uv, obs_image, obs_target, target_xyz, width, height, n_images):
+    def __init__(self, uv, obs_image, obs_target, target_xyz, n_images):
         self.uv = uv
         self.points = target_xyz[obs_target]
-        self.pp = np.array([(width - 1) / 2.0, (height - 1) / 2.0])
-        self.radius = np.hypot(*(uv - self.pp).T)
         order = np.argsort(obs_image, kind="stable")
         counts = np.bincount(obs_image, minlength=n_images)
         self.obs_of_image = np.split(order, np.cumsum(counts)[:-1])
         self.counts = counts
-        r_central = 0.25 * min(width, height)
-        self.central_of_image = [i[self.radius[i] <= r_central] for i in self.obs_of_image]
 
-    def run(
-        self,
-        image,
-        mapping,
-        f_px,
-        thr,
-        seed,
-        max_iterations,
-        min_inliers,
-        refine=True,
-        central=False,
-    ):
-        """RANSAC pose of one image under one hypothesis; returns (PoseResult, MSAC cost)."""
-        idx = (self.central_of_image if central else self.obs_of_image)[image]
-        rays = bearings_from_pixels(self.uv[idx], mapping, f_px, self.pp)
+    def errors_px(self, idx, hyp: LensHypothesis, R, t) -> np.ndarray:
+        """Reprojection errors (px) of observations ``idx`` under a pose; inf where undefined."""
+        if not np.all(np.isfinite(R)):
+            return np.full(idx.size, np.inf)
+        p = self.points[idx] @ R.T + t
+        e = np.hypot(*(hyp.project(p) - self.uv[idx]).T)
+        return np.where(np.isfinite(e), e, np.inf)
+
+    def run(self, image, hyp, thr_px, seed, max_iterations, min_inliers, refine):
+        """RANSAC pose of one image; returns (PoseResult, MSAC cost px^2, errors px)."""
+        idx = self.obs_of_image[image]
+        rays = hyp.rays(self.uv[idx])
         res = ransac_pose(
             rays,
             self.points[idx],
-            thr,
+            _ransac_threshold_rad(hyp, thr_px),
             np.random.default_rng(seed),
             max_iterations=max_iterations,
             min_inliers=min_inliers,
             refine=refine,
         )
-        if np.all(np.isfinite(res.R)):
-            err = np.nan_to_num(angular_errors_rad(rays, self.points[idx], res.R, res.t), nan=9.0)
-            cost = float(np.minimum(err * err, thr * thr).sum())
-        else:
-            cost = idx.size * thr * thr
-        return res, cost
+        err = self.errors_px(idx, hyp, res.R, res.t)
+        return res, float(np.minimum(err * err, thr_px * thr_px).sum()), err
 
-    def cost(self, images, seeds, mapping, f_px, thr, max_iterations, refine=True, central=False):
-        """Total MSAC cost of a hypothesis over ``images`` (rad^2)."""
-        total = 0.0
-        for image, seed in zip(images, seeds, strict=True):
-            total += self.run(image, mapping, f_px, thr, seed, max_iterations, 4, refine, central)[
-                1
-            ]
-        return total
+    def cost(self, images, seeds, hyp, thr_px, max_iterations, refine):
+        """Total pixel MSAC cost of a hypothesis over ``images`` (px^2)."""
+        return sum(
+            self.run(i, hyp, thr_px, s, max_iterations, 4, refine)[1]
+            for i, s in zip(images, seeds, strict=True)
+        )
 
 
-def _focal_scan(problem, images, seeds, mapping, f0, thr):
-    """Stage one of the focal search: 13 values of ``log f`` over one coarse step either
-    side of ``f0`` (2.3 % apart), no pose refinement, threshold ``2 thr``.
+def _ransac_threshold_rad(hyp: LensHypothesis, thr_px: float) -> float:
+    """Angular RANSAC threshold matching ``thr_px`` where the mapping is flattest.
 
-    Returns ``(f_px, cost)`` of the best value.
+    The pixel error of an angular error ``e`` is ``r'(alpha) e``; mappings that compress
+    the rim (equisolid, sphere) need a looser angle there. The slope is floored at
+    0.3 f so that the sphere's fold at 90 deg does not open the threshold without bound.
     """
+    a = np.linspace(0.0, min(hyp.alpha_max_rad, np.pi), 64)
+    r = hyp.radius_px(a)
+    slope = np.diff(r) / np.diff(a)
+    slope = slope[np.isfinite(slope)]
+    s_min = float(slope.min()) if slope.size else hyp.f_px
+    return float(thr_px / max(s_min, 0.3 * hyp.f_px))
+
+
+def _focal_grid(mapping: str, r_obs_px: float) -> np.ndarray:
+    """Coarse focal hypotheses (px) for one family, geometric with ratio ``_GRID_RATIO``.
+
+    The observed radius ``r_obs_px`` is reached no later than the family's domain
+    (smallest ``f``) and no earlier than ``_MIN_HALF_FOV_DEG`` (largest ``f``).
+    """
+    rho_hi = float(_rho(mapping, np.radians(_DOMAIN_DEG[mapping])))
+    rho_lo = float(_rho(mapping, np.radians(_MIN_HALF_FOV_DEG)))
+    f_lo, f_hi = r_obs_px / rho_hi, r_obs_px / rho_lo
+    n = int(np.ceil(np.log(f_hi / f_lo) / np.log(_GRID_RATIO))) + 1
+    return np.geomspace(f_lo, f_hi, n)
+
+
+def _with_f(hyp: LensHypothesis, f_px: float) -> LensHypothesis:
+    return LensHypothesis(hyp.mapping, float(f_px), hyp.principal_point_px, hyp.coeffs,
+                          hyp.alpha_max_rad)
+
+
+def _focal_scan(problem, images, seeds, hyp, thr_px):
+    """13 values of ``log f`` over one coarse step either side of ``hyp.f_px`` (2.3 %
+    apart), no pose refinement. Returns ``(hypothesis, cost)`` of the best value."""
     half = np.log(_GRID_RATIO)
-    xs = np.log(f0) + np.linspace(-half, half, 13)
-    cs = [problem.cost(images, seeds, mapping, np.exp(x), 2.0 * thr, 64, False) for x in xs]
+    xs = np.log(hyp.f_px) + np.linspace(-half, half, 13)
+    cs = [problem.cost(images, seeds, _with_f(hyp, np.exp(x)), thr_px, 64, False) for x in xs]
     j = int(np.argmin(cs))
-    return float(np.exp(xs[j])), float(cs[j])
+    return _with_f(hyp, np.exp(xs[j])), float(cs[j])
 
 
-def _focal_zoom(problem, images, seeds, mapping, f0, thr):
-    """Stage two: 5 values 0.6 % apart around ``f0`` with refinement and ``thr``, then a
-    parabolic step in ``log f``. Returns ``(f_px, cost)``."""
+def _focal_zoom(problem, images, seeds, hyp, thr_px):
+    """5 values 0.6 % apart around ``hyp.f_px`` with pose refinement, then a parabolic
+    step in ``log f``. Returns ``(hypothesis, cost)``."""
     h = np.log(_GRID_RATIO) / 24.0
-    x2 = np.log(f0) + h * np.arange(-2, 3)
-    c2 = [problem.cost(images, seeds, mapping, np.exp(x), thr, 300) for x in x2]
+    x2 = np.log(hyp.f_px) + h * np.arange(-2, 3)
+    c2 = [problem.cost(images, seeds, _with_f(hyp, np.exp(x)), thr_px, 300, True) for x in x2]
     j = int(np.argmin(c2))
     xs, cs = list(x2), list(c2)
     if 0 < j < len(c2) - 1:
@@ -258,9 +460,66 @@ def _focal_zoom(problem, images, seeds, mapping, f0, thr):
         if den > 0:
             x_new = x2[j] + 0.5 * h * (y0 - y2) / den
             xs.append(x_new)
-            cs.append(problem.cost(images, seeds, mapping, np.exp(x_new), thr, 300))
+            cs.append(problem.cost(images, seeds, _with_f(hyp, np.exp(x_new)), thr_px, 300, True))
     k = int(np.argmin(cs))
-    return float(np.exp(xs[k])), float(cs[k])
+    return _with_f(hyp, np.exp(xs[k])), float(cs[k])
+
+
+def _fit_radial(uv, p_cam, fit_principal_point: bool, pp0: np.ndarray):
+    """Robust linear fit of ``uv = pp + r(alpha) * dir`` with ``r`` an odd polynomial.
+
+    Parameters
+    ----------
+    uv : (N, 2) observed pixels. p_cam : (N, 3) the targets in the camera frame.
+    fit_principal_point : estimate ``pp`` too (else keep ``pp0``).
+
+    Returns
+    -------
+    LensHypothesis ("fitted") or None when the fit is not a usable increasing mapping.
+    """
+    s = np.hypot(p_cam[:, 0], p_cam[:, 1])
+    alpha = np.arctan2(s, p_cam[:, 2])
+    ok = (s > 1e-9) & np.isfinite(alpha) & np.all(np.isfinite(uv), axis=1)
+    if ok.sum() < 4 * (_N_POLY + 2):
+        return None
+    uv, alpha, s, p = uv[ok], alpha[ok], s[ok], p_cam[ok]
+    d = p[:, :2] / s[:, None]
+    basis = np.column_stack([_ALPHA0_RAD * (alpha / _ALPHA0_RAD) ** (2 * k + 1)
+                             for k in range(_N_POLY)])
+    n = len(alpha)
+    blocks = [np.vstack([basis * d[:, 0:1], basis * d[:, 1:2]])]
+    if fit_principal_point:
+        e = np.zeros((2 * n, 2))
+        e[:n, 0] = 1.0
+        e[n:, 1] = 1.0
+        blocks.insert(0, e)
+    A = np.hstack(blocks)
+    b = np.concatenate([uv[:, 0], uv[:, 1]])
+    if not fit_principal_point:
+        b = b - np.concatenate([np.full(n, pp0[0]), np.full(n, pp0[1])])
+    w = np.ones(2 * n)
+    x = None
+    for _ in range(4):
+        sw = np.sqrt(w)
+        x = np.linalg.lstsq(A * sw[:, None], b * sw, rcond=None)[0]
+        res = np.abs(A @ x - b)
+        k = 2.0 * 1.4826 * max(float(np.median(res)), 1e-6)
+        w = np.where(res <= k, 1.0, k / np.maximum(res, 1e-300))
+    pp = x[:2] if fit_principal_point else pp0
+    bcoef = x[2:] if fit_principal_point else x
+    if not np.all(np.isfinite(bcoef)) or bcoef[0] <= 0 or not np.all(np.isfinite(pp)):
+        return None
+    coeffs = bcoef / bcoef[0] / _ALPHA0_RAD ** (2 * np.arange(_N_POLY))
+    poly = np.zeros(2 * _N_POLY)
+    poly[1::2] = coeffs
+    grid = np.linspace(0.0, np.pi, 2049)
+    deriv = np.polynomial.polynomial.polyval(grid, np.polynomial.polynomial.polyder(poly))
+    fold = grid[np.argmax(deriv <= 0)] if np.any(deriv <= 0) else np.pi
+    a_obs = float(np.percentile(alpha, 99.5))
+    if fold < 0.9 * a_obs:
+        return None
+    a_max = float(min(fold, 1.1 * a_obs, np.pi))
+    return LensHypothesis("fitted", float(bcoef[0]), np.asarray(pp, float), coeffs, a_max)
 
 
 def _check_inputs(uv_px, obs_image, obs_target, target_xyz, width, height, n_images):
@@ -311,7 +570,7 @@ def initialize_poses(
     n_coarse_images: int = 4,
     mappings: tuple[str, ...] = MAPPINGS,
 ) -> InitialisationResult:
-    """Initial cam_from_world poses of every image, with the lens mapping unknown.
+    """Initial cam_from_world poses of every image, and a lens, with the lens unknown.
 
     Parameters
     ----------
@@ -325,7 +584,7 @@ def initialize_poses(
         Approximate world coordinates of the targets, metres (noise and a few percent of
         blunders in the observations are tolerated).
     width, height : int
-        Image size, px; the principal point is assumed at ``((width-1)/2, (height-1)/2)``.
+        Image size, px.
     n_images : int
         Number of images ``M``.
     rng : numpy.random.Generator, optional
@@ -335,25 +594,28 @@ def initialize_poses(
     min_inliers : int
         An image is initialised when its pose has at least this many inliers.
     threshold_rad, threshold_px : float
-        Final angular inlier threshold is ``max(threshold_rad, threshold_px / f_px)``
-        (see the module docstring for the rationale).
+        The final pixel inlier threshold is ``max(1 % of R_obs, threshold_rad * f,
+        threshold_px)`` (module docstring).
     n_scoring_images, n_coarse_images : int
         Images (those with most observations) used to rank lens hypotheses in the fine
         and the coarse search.
     mappings : tuple of str
-        Mapping kinds to try, subset of :data:`MAPPINGS`.
+        Families to try, a subset of :data:`MAPPINGS`.
 
     Returns
     -------
     InitialisationResult
-        Poses (NaN for failed images), per-observation inliers, the chosen ``mapping`` and
-        ``f_px``, and ``failures`` with a reason for every image not initialised.
+        Poses (NaN for failed images), per-observation inliers, the chosen family
+        ``mapping`` and ``f_px``, the (possibly refitted) ``lens`` with its principal
+        point, and ``failures`` with a reason for every image not initialised.
 
     Raises
     ------
     ValueError
-        On malformed input, or when no image can be initialised (the message gives the
-        reasons).
+        On malformed input.
+    InitialisationError
+        When no image can be initialised, or no hypothesis explains at least half of the
+        observations (the message lists what was tried).
     """
     uv, img, tgt, xyz = _check_inputs(
         uv_px, obs_image, obs_target, target_xyz, width, height, n_images
@@ -365,7 +627,7 @@ def initialize_poses(
     say = progress if progress is not None else (lambda _msg: None)
     n_images = int(n_images)
     min_inliers = max(int(min_inliers), 4)
-    problem = _Problem(uv, img, tgt, xyz, int(width), int(height), n_images)
+    problem = _Problem(uv, img, tgt, xyz, n_images)
     counts = problem.counts
 
     failures: dict[int, str] = {}
@@ -379,91 +641,204 @@ def initialize_poses(
             )
     eligible = np.flatnonzero(counts >= min_inliers)
     if eligible.size == 0:
-        raise ValueError(
+        raise InitialisationError(
             f"no image can be initialised: every one of the {n_images} images has fewer "
             f"than {min_inliers} observations (counts: {counts.tolist()})"
         )
 
     scoring = eligible[np.argsort(-counts[eligible], kind="stable")][:n_scoring_images]
     seeds = rng.integers(0, 2**63 - 1, size=scoring.size)
-    scores: dict[tuple[str, float], float] = {}
-
-    # 1. coarse search. Two criteria per kind: the cost on all observations, and on the
-    # central ones only (r < a quarter of the short side, where every kind has
-    # dr/dalpha ~ f and a few percent of focal error cannot spoil the fit, which matters
-    # for mappings that are steep at the rim like the sphere's near 90 deg).
-    coarse_thr = 3.0 * threshold_rad
     coarse_images = scoring[:n_coarse_images]
     coarse_seeds = seeds[: coarse_images.size]
-    candidates: dict[str, list[float]] = {}
-    for m in mappings:
-        grid = _focal_grid(m, int(width), int(height))
-        cands = []
-        for central in (False, True):
+
+    # 1. where the image is: principal point hypotheses and the observed radius
+    centre = np.array([(width - 1) / 2.0, (height - 1) / 2.0])
+    disc = observed_disc(uv, int(width), int(height))
+    pps = [centre]
+    if disc is not None:
+        say(
+            f"observations fill a disc: centre ({disc[0][0]:.1f}, {disc[0][1]:.1f}), "
+            f"radius {disc[1]:.1f} px"
+        )
+        if np.hypot(*(disc[0] - centre)) > 0.005 * min(width, height):
+            pps.append(np.asarray(disc[0], float))
+
+    def r_obs(pp):
+        return float(np.percentile(np.hypot(*(uv - pp).T), 99.0))
+
+    # 2. coarse search: the best f of every (principal point, family)
+    coarse = []
+    for pp in pps:
+        ro = r_obs(pp)
+        thr = 0.03 * ro
+        for m in mappings:
+            grid = _focal_grid(m, ro)
             costs = [
-                problem.cost(
-                    coarse_images, coarse_seeds, m, f, coarse_thr, 64, False, central=central
-                )
+                problem.cost(coarse_images, coarse_seeds, _family(m, f, pp), thr, 64, False)
                 for f in grid
             ]
             j = int(np.argmin(costs))
-            if not cands or abs(np.log(grid[j] / cands[0])) > 1.5 * np.log(_GRID_RATIO):
-                cands.append(float(grid[j]))
-        candidates[m] = cands
-        say(f"coarse: {m:11s} f candidates {', '.join(f'{c:.1f}' for c in cands)} px")
-
-    # 2. 1-D focal search around every candidate (scan on the coarse images), then a
-    # zoom with pose refinement on all scoring images for the promising ones; the lowest
-    # MSAC cost over kinds wins.
+            coarse.append((costs[j] / thr**2, _family(m, grid[j], pp), ro))
+            say(
+                f"coarse: {m:13s} f = {grid[j]:8.1f} px, pp ({pp[0]:.0f}, {pp[1]:.0f}): "
+                f"cost {costs[j] / thr**2:.4g}"
+            )
+    # 3. scan and zoom the promising ones (costs in units of thr^2: comparable across pp)
+    best_coarse = min(c for c, _, _ in coarse)
     scanned = []
-    for m in mappings:
-        for f0 in candidates[m]:
-            f_s, c_s = _focal_scan(problem, coarse_images, coarse_seeds, m, f0, threshold_rad)
-            scanned.append((c_s, m, f_s))
-            say(f"scan:   {m:11s} f = {f_s:.1f} px (cost {c_s:.4g})")
-    best_scan = min(c for c, _, _ in scanned)
-    best = (np.inf, "", np.nan)
-    for c_s, m, f_s in sorted(scanned):
-        if c_s > 1.5 * best_scan:
+    for c, hyp, ro in sorted(coarse, key=lambda x: x[0]):
+        if c > 2.0 * best_coarse + 1.0 or len(scanned) >= 6:
             continue
-        f_m, c_m = _focal_zoom(problem, scoring, seeds, m, f_s, threshold_rad)
-        scores[(m, f_m)] = c_m
-        say(f"zoom:   {m:11s} f = {f_m:.1f} px (cost {c_m:.4g})")
-        if c_m < best[0]:
-            best = (c_m, m, f_m)
-    _, mapping, f_px = best
-    say(f"chosen mapping: {mapping}, f = {f_px:.1f} px")
+        thr = 0.02 * ro
+        h_s, c_s = _focal_scan(problem, coarse_images, coarse_seeds, hyp, thr)
+        scanned.append((c_s / thr**2, h_s, ro))
+        say(f"scan:   {h_s.describe()} (cost {c_s / thr**2:.4g})")
+    best_scan = min(c for c, _, _ in scanned)
+    zoomed = []
+    scores: dict[tuple[str, float], float] = {}
+    for c_s, hyp, ro in sorted(scanned, key=lambda x: x[0]):
+        if c_s > 1.5 * best_scan + 1.0 or len(zoomed) >= 4:
+            continue
+        thr = 0.01 * ro
+        h_z, c_z = _focal_zoom(problem, scoring, seeds, hyp, thr)
+        scores[(hyp.mapping, h_z.f_px)] = c_z
+        zoomed.append((c_z / thr**2, h_z, ro))
+        say(f"zoom:   {h_z.describe()} (cost {c_z / thr**2:.4g})")
+    zoomed.sort(key=lambda x: x[0])
 
-    # 3. all images with the chosen hypothesis
-    thr = max(threshold_rad, threshold_px / f_px)
+    # 4. refit the best hypotheses: poses <-> principal point and radial polynomial
+    ranked = []
+    for c_z, hyp, ro in zoomed[:2]:
+        thr = 0.01 * ro
+        h_r, c_r = _refit(problem, scoring, seeds, hyp, thr, c_z * thr**2, say)
+        ranked.append((c_r / thr**2, hyp, h_r, ro))
+    ranked.sort(key=lambda x: x[0])
+    ranked += [(c, h, h, ro) for c, h, ro in zoomed[2:]]
+
+    # 5. every image with the best hypothesis; fall through when most are rejected
+    tried: list[str] = []
+    image_seeds = rng.integers(0, 2**63 - 1, size=n_images)
+    n_eligible_obs = int(counts[eligible].sum())
+    for _, family, lens, ro in ranked:
+        thr = max(0.01 * ro, threshold_rad * lens.f_px, threshold_px)
+        say(f"chosen lens hypothesis: {lens.describe()}")
+        posed = _pose_all(problem, eligible, lens, thr, image_seeds, min_inliers)
+        posed = _final_refit(problem, eligible, lens, thr, image_seeds, min_inliers, posed, say)
+        rot, trans, ok, inlier_mask, fails, lens = posed
+        frac = inlier_mask.sum() / max(n_eligible_obs, 1)
+        if frac >= _MIN_INLIER_FRACTION and ok.any():
+            failures.update(fails)
+            say(
+                f"initialised {int(ok.sum())} of {n_images} images ({len(failures)} failed); "
+                f"{100 * frac:.1f} % of the observations consistent"
+            )
+            return InitialisationResult(
+                cam_from_world_R=rot,
+                cam_from_world_t=trans,
+                ok=ok,
+                inlier_mask=inlier_mask,
+                mapping=family.mapping,
+                f_px=float(family.f_px),
+                failures=dict(sorted(failures.items())),
+                threshold_rad=float(thr / lens.f_px),
+                scores=scores,
+                lens=lens,
+                threshold_px=float(thr),
+                disc=disc,
+                tried=tried,
+            )
+        why = f"{lens.describe()}: {100 * frac:.1f} % of the observations consistent"
+        tried.append(why)
+        say(f"rejected: {why}; trying the next hypothesis")
+    detail = "; ".join(tried) if tried else "no hypothesis"
+    raise InitialisationError(
+        "no lens hypothesis explains the observations (need at least "
+        f"{100 * _MIN_INLIER_FRACTION:.0f} % consistent with P3P poses): {detail}. "
+        "Check the target ids and coordinates (units, mislabelled points) and the image "
+        "size; a lens beyond the families tried (pinhole, stereographic, equidistant, "
+        "equisolid, orthographic) may need a first guess."
+    )
+
+
+def _pose_all(problem, images, lens, thr, seeds, min_inliers):
+    """RANSAC poses of ``images`` under ``lens``; inliers by pixel error below ``thr``."""
+    n_images = problem.counts.size
     rot = np.full((n_images, 3, 3), np.nan)
     trans = np.full((n_images, 3), np.nan)
     ok = np.zeros(n_images, bool)
-    inlier_mask = np.zeros(uv.shape[0], bool)
-    image_seeds = rng.integers(0, 2**63 - 1, size=n_images)
-    for i in eligible:
-        res, _ = problem.run(i, mapping, f_px, thr, image_seeds[i], 1000, min_inliers)
-        if res.success:
+    inlier_mask = np.zeros(problem.uv.shape[0], bool)
+    fails: dict[int, str] = {}
+    for i in images:
+        res, _, err = problem.run(i, lens, thr, seeds[i], 1000, min_inliers, True)
+        inl = err < thr
+        if res.success and inl.sum() >= min_inliers:
             ok[i] = True
             rot[i], trans[i] = res.R, res.t
-            inlier_mask[problem.obs_of_image[i]] = res.inlier_mask
+            inlier_mask[problem.obs_of_image[i]] = inl
         else:
-            failures[int(i)] = res.reason or "RANSAC failed"
-    say(f"initialised {int(ok.sum())} of {n_images} images ({len(failures)} failed)")
-    if not ok.any():
-        detail = "; ".join(f"image {k}: {v}" for k, v in sorted(failures.items())[:10])
-        raise ValueError(
-            f"no image could be initialised with the best lens hypothesis "
-            f"({mapping}, f = {f_px:.1f} px): {detail}"
-        )
-    return InitialisationResult(
-        cam_from_world_R=rot,
-        cam_from_world_t=trans,
-        ok=ok,
-        inlier_mask=inlier_mask,
-        mapping=mapping,
-        f_px=f_px,
-        failures=dict(sorted(failures.items())),
-        threshold_rad=thr,
-        scores=scores,
-    )
+            fails[int(i)] = res.reason or (
+                f"only {int(inl.sum())} observations within {thr:.1f} px of the pose"
+            )
+    return rot, trans, ok, inlier_mask, fails, lens
+
+
+def _inlier_geometry(problem, images, rot, trans, mask):
+    """(uv (K, 2), p_cam (K, 3)) of the inlier observations of ``images``."""
+    uvs, pcs = [], []
+    for i in images:
+        if not np.all(np.isfinite(rot[i])):
+            continue
+        idx = problem.obs_of_image[i]
+        idx = idx[mask[idx]]
+        uvs.append(problem.uv[idx])
+        pcs.append(problem.points[idx] @ rot[i].T + trans[i])
+    if not uvs:
+        return np.zeros((0, 2)), np.zeros((0, 3))
+    return np.concatenate(uvs), np.concatenate(pcs)
+
+
+def _refit(problem, images, seeds, hyp, thr, cost, say):
+    """Alternate poses and a linear radial refit on ``images`` while the cost drops."""
+    best, best_cost = hyp, cost
+    for _ in range(3):
+        n = problem.counts.size
+        rot = np.full((n, 3, 3), np.nan)
+        trans = np.full((n, 3), np.nan)
+        mask = np.zeros(problem.uv.shape[0], bool)
+        for i, s in zip(images, seeds, strict=True):
+            res, _, err = problem.run(i, best, thr, s, 300, 4, True)
+            if np.all(np.isfinite(res.R)):
+                rot[i], trans[i] = res.R, res.t
+                mask[problem.obs_of_image[i]] = err < 2.0 * thr
+        uv, pc = _inlier_geometry(problem, images, rot, trans, mask)
+        new = _fit_radial(uv, pc, True, best.principal_point_px)
+        if new is None:
+            break
+        c_new = problem.cost(images, seeds, new, thr, 300, True)
+        if c_new >= 0.98 * best_cost:
+            break
+        best, best_cost = new, c_new
+    if best is not hyp:
+        say(f"refit:  {best.describe()} (cost {best_cost / thr**2:.4g})")
+    return best, best_cost
+
+
+def _final_refit(problem, images, lens, thr, seeds, min_inliers, posed, say):
+    """Radial refits over every posed image (up to 3), kept while they explain at least
+    0.5 % more observations (the principal point and the poses' rotations trade off, so
+    a principal point off the image centre needs more than one round)."""
+    for _ in range(3):
+        rot, trans, ok, mask, _, lens = posed
+        uv, pc = _inlier_geometry(problem, images, rot, trans, mask)
+        new = _fit_radial(uv, pc, True, lens.principal_point_px)
+        if new is None:
+            break
+        again = _pose_all(problem, images, new, thr, seeds, min_inliers)
+        if again[3].sum() <= mask.sum():
+            break
+        say(f"refit on all images: {new.describe()}, {int(again[3].sum())} consistent")
+        gained = again[3].sum() - mask.sum()
+        posed = again
+        if gained < 0.005 * mask.size:
+            break
+    return posed
