@@ -38,12 +38,13 @@ set (P3P poses, ``calibrate(..., init=...)``, the held-out image removed from
 it) and skip the covariance; they are only starting values.
 
     python benchmarks/holdout.py [--model radial+knn [brown+knn ...]] [--quick]
-        [--control-sigma none 0.0005] [--max-views N]
+        [--control-sigma exact auto 0.0005] [--max-views N]
         [--only ov_plane,opencv,fish,recovery] [--json OUT.json]
 
 ``--control-sigma``: each model runs with the board's nominal coordinates taken as
-exact (``none``) and with the board corners estimated around them with that sigma in
-metres (``gtsam-sphere calibrate --control-sigma``); held-out images are then resected
+exact (``exact``: ``gtsam-sphere calibrate --exact-targets``), with the defaults
+(``auto``: the corners estimated with a sigma of 1e-3 of the board's size) and/or with
+a given sigma in metres (``--control-sigma``); held-out images are then resected
 against the calibration's estimated board.
 
 Default: ``--model radial+knn``, every view; about 6-8 minutes per model on 2
@@ -124,17 +125,19 @@ def held_out_indices(n: int, max_views: int | None) -> list[int]:
     return sorted(set(np.linspace(0, n - 1, max_views).round().astype(int).tolist()))
 
 
-def options(model: str, seed: int, control_sigma: float | None = None) -> CalibrationOptions:
+def options(model: str, seed: int, control_sigma="auto") -> CalibrationOptions:
     """Calibration options of the benchmark (no covariance: not needed here)."""
     return CalibrationOptions(
         model=Model(model), seed=seed, covariance=False, control_sigma=control_sigma
     )
 
 
-def variant_label(model: str, control_sigma: float | None) -> str:
+def variant_label(model: str, control_sigma) -> str:
     """Row label of one of our variants."""
     if control_sigma is None:
-        return f"ours {model}"
+        return f"ours {model}, board exact (--exact-targets)"
+    if control_sigma == "auto":
+        return f"ours {model}, defaults (board estimated, sigma 1e-3 of its size)"
     return f"ours {model}, board estimated (control sigma {control_sigma * 1000:g} mm)"
 
 
@@ -163,6 +166,8 @@ def subset_init(init: Initialisation, keep: np.ndarray) -> Initialisation:
         int(keep.sum()),
         init.mapping,
         init.f_px,
+        None if init.inlier_mask is None else init.inlier_mask[keep[init.dataset.obs_image]],
+        init.principal_point_px,
     )
 
 
@@ -628,9 +633,10 @@ def main(argv=None) -> int:
     parser.add_argument(
         "--control-sigma",
         nargs="+",
-        default=["none", "0.0005"],
-        help="board variants: 'none' (the board's nominal coordinates are exact) and/or "
-        "sigmas in metres with which the board corners are estimated (default: none 0.0005)",
+        default=["exact", "auto"],
+        help="board variants: 'exact' (or 'none': the board's nominal coordinates are "
+        "exact, --exact-targets), 'auto' (the default of calibrate) and/or sigmas in metres "
+        "with which the board corners are estimated (default: exact auto)",
     )
     parser.add_argument("--max-views", type=int, default=None, help="views held out per set")
     parser.add_argument("--quick", action="store_true", help="hold out 6 views per set")
@@ -646,7 +652,7 @@ def main(argv=None) -> int:
     for m in models:
         Model(m)  # ValueError names a bad model
     sigmas = [
-        None if t.lower() == "none" else float(t)
+        None if t.lower() in ("none", "exact") else "auto" if t.lower() == "auto" else float(t)
         for text in args.control_sigma
         for t in text.split(",")
         if t

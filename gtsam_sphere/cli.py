@@ -47,18 +47,39 @@ def _add_calibration_options(p: argparse.ArgumentParser) -> None:
         default=None,
         help="image noise sigma (px); default: estimated from the residuals",
     )
-    p.add_argument(
+    targets = p.add_mutually_exclusive_group()
+    targets.add_argument(
         "--control-sigma",
-        type=float,
-        default=None,
-        metavar="SIGMA",
-        help="estimate the targets marked exact (sigma 0, printed boards) with this standard "
-        "deviation in the dataset's units (e.g. 0.0005 for 0.5 mm): recovers a curled or "
-        "misprinted board; default: keep them exact",
+        type=_control_sigma_arg,
+        default="auto",
+        metavar="SIGMA|auto",
+        help="the targets marked exact (sigma 0, printed boards, machined objects) are "
+        "estimated around their nominal coordinates with this standard deviation in the "
+        "dataset's units (e.g. 0.0005 for 0.5 mm): recovers a curled or misprinted board; "
+        "default 'auto': 1e-3 of the exact targets' extent",
+    )
+    targets.add_argument(
+        "--exact-targets",
+        dest="control_sigma",
+        action="store_const",
+        const=None,
+        help="hold the targets marked exact (sigma 0) at their nominal coordinates",
     )
     p.add_argument("--max-iterations", type=int, default=100)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--quiet", action="store_true", help="no progress lines")
+
+
+def _control_sigma_arg(text: str):
+    if text.strip().lower() == "auto":
+        return "auto"
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number or 'auto', got {text!r}") from None
+    if not (value > 0 and value < float("inf")):
+        raise argparse.ArgumentTypeError(f"must be a positive number, got {text!r}")
+    return value
 
 
 def _options_from_args(args):
@@ -127,9 +148,9 @@ def cmd_calibrate(args) -> int:
         print(f"warning: do not trust this result: {reason}", file=sys.stderr)
     if args.control_sigma is None and bool((dataset.target_sigma == 0).all()):
         print(
-            "hint: every target is exact (a printed board?); real boards are rarely flat or "
-            "true to scale to 0.1 mm: try --control-sigma 0.0005 to estimate the board's "
-            "shape (README, 'Printed boards')",
+            "hint: every target was held exact (--exact-targets); real boards are rarely "
+            "flat or true to scale to 0.1 mm: without --exact-targets their shape is "
+            "estimated (README, 'Printed boards')",
             file=sys.stderr,
         )
     return 0 if calib.statistics.get("trusted", calib.statistics["converged"]) else 1

@@ -83,6 +83,7 @@ _MIN_HALF_FOV_DEG = 12.0  # the observed field is at least 24 deg across
 _ALPHA0_RAD = np.pi / 2  # scale of alpha in the refit polynomial (conditioning)
 _N_POLY = 4  # odd terms alpha, alpha^3, alpha^5, alpha^7 in the refit
 _MIN_INLIER_FRACTION = 0.5  # below this the hypothesis is "mostly rejected"
+_MAX_SCORED = 160  # observations per image when ranking hypotheses
 
 
 class InitialisationError(ValueError):
@@ -270,10 +271,12 @@ def observed_disc(uv_px: np.ndarray, width: int, height: int):
     """The disc that the observations fill, if they fill one.
 
     A circular fisheye smaller than the sensor, or a catadioptric image, puts every
-    observation inside a disc around its principal point. The circle is fitted (linear
-    least squares, then the radius that holds every hull vertex) to the convex hull of
-    the observations; it counts as a disc when the hull vertices lie within 4 % of its
-    radius and surround its centre (no angular gap above 100 deg).
+    observation inside a disc around its principal point. A circle is fitted (linear
+    least squares) to the densified convex hull of the observations, twice: the second
+    time without the observations beyond the 99.5th percentile of the distance to the
+    first centre (blunders outside the image circle). It counts as a disc when the hull
+    lies within 4 % of the radius of the circle (90 % of its length) and surrounds its
+    centre (no angular gap above 100 deg).
 
     Parameters
     ----------
@@ -285,6 +288,8 @@ def observed_disc(uv_px: np.ndarray, width: int, height: int):
     Returns
     -------
     (centre_px (2,), radius_px) or None
+        ``radius_px`` is the 99.5th percentile of the observations' distance to the
+        centre.
     """
     uv = np.asarray(uv_px, dtype=float)
     uv = uv[np.all(np.isfinite(uv), axis=1)]
@@ -292,13 +297,27 @@ def observed_disc(uv_px: np.ndarray, width: int, height: int):
         return None
     import cv2
 
-    hull = cv2.convexHull(uv.astype(np.float32)).reshape(-1, 2).astype(float)
-    if hull.shape[0] < 8:
+    fit = None
+    for _ in range(2):
+        hull = cv2.convexHull(uv.astype(np.float32)).reshape(-1, 2).astype(float)
+        if hull.shape[0] < 8:
+            return None
+        fit = _hull_circle(hull, 0.01 * max(width, height))
+        if fit is None:
+            return None
+        dist = np.hypot(*(uv - fit[0]).T)
+        uv = uv[dist <= np.percentile(dist, 99.5)]
+    centre, ok = fit
+    if not ok:
         return None
-    # densify the hull edges so long edges (clipped borders) weigh by their length
+    return centre, float(np.percentile(np.hypot(*(uv - centre).T), 99.5))
+
+
+def _hull_circle(hull: np.ndarray, step_px: float):
+    """(centre (2,), is_disc) of the circle fitted to a convex hull (M, 2), or None."""
     pts = []
     for a, b in zip(hull, np.roll(hull, -1, axis=0)):
-        n = max(int(np.hypot(*(b - a)) / (0.01 * max(width, height))), 1)
+        n = max(int(np.hypot(*(b - a)) / step_px), 1)
         pts.append(a + np.linspace(0, 1, n, endpoint=False)[:, None] * (b - a))
     pts = np.concatenate(pts)
     A = np.column_stack([2 * pts, np.ones(len(pts))])
@@ -308,13 +327,10 @@ def observed_disc(uv_px: np.ndarray, width: int, height: int):
     if not np.isfinite(radius) or radius <= 0:
         return None
     dev = np.abs(np.hypot(*(pts - centre).T) - radius)
-    if np.percentile(dev, 90) > 0.04 * radius:
-        return None
     ang = np.sort(np.arctan2(*(hull - centre).T[::-1]))
     gaps = np.diff(np.concatenate([ang, ang[:1] + 2 * np.pi]))
-    if gaps.max() > np.radians(100.0):
-        return None
-    return centre, float(np.hypot(*(hull - centre).T).max())
+    is_disc = np.percentile(dev, 90) <= 0.04 * radius and gaps.max() <= np.radians(100.0)
+    return centre, bool(is_disc)
 
 
 @dataclass
@@ -363,13 +379,21 @@ class InitialisationResult:
 class _Problem:
     """Observations grouped by image; pose and pixel cost of one image under a hypothesis."""
 
-    def __init__(self, uv, obs_image, obs_target, target_xyz, n_images):
+    def __init__(self, uv, obs_image, obs_target, target_xyz, n_images, max_per_image=_MAX_SCORED):
         self.uv = uv
         self.points = target_xyz[obs_target]
         order = np.argsort(obs_image, kind="stable")
         counts = np.bincount(obs_image, minlength=n_images)
         self.obs_of_image = np.split(order, np.cumsum(counts)[:-1])
         self.counts = counts
+        # hypotheses are ranked on at most ``max_per_image`` observations of an image (an
+        # evenly spread, fixed subset: dense boards cost no more than sparse rooms)
+        self.scored_of_image = [
+            idx if idx.size <= max_per_image
+            else idx[np.linspace(0, idx.size - 1, max_per_image).round().astype(int)]
+            for idx in self.obs_of_image
+        ]
+        self.all_observations = False
 
     def errors_px(self, idx, hyp: LensHypothesis, R, t) -> np.ndarray:
         """Reprojection errors (px) of observations ``idx`` under a pose; inf where undefined."""
@@ -380,8 +404,11 @@ class _Problem:
         return np.where(np.isfinite(e), e, np.inf)
 
     def run(self, image, hyp, thr_px, seed, max_iterations, min_inliers, refine):
-        """RANSAC pose of one image; returns (PoseResult, MSAC cost px^2, errors px)."""
-        idx = self.obs_of_image[image]
+        """RANSAC pose of one image; returns (PoseResult, MSAC cost px^2, errors px).
+
+        Uses every observation of the image when ``all_observations`` is set, else the
+        scoring subset (errors are then of that subset)."""
+        idx = (self.obs_of_image if self.all_observations else self.scored_of_image)[image]
         rays = hyp.rays(self.uv[idx])
         res = ransac_pose(
             rays,
@@ -463,6 +490,43 @@ def _focal_zoom(problem, images, seeds, hyp, thr_px):
             cs.append(problem.cost(images, seeds, _with_f(hyp, np.exp(x_new)), thr_px, 300, True))
     k = int(np.argmin(cs))
     return _with_f(hyp, np.exp(xs[k])), float(cs[k])
+
+
+def _with_pp(hyp: LensHypothesis, pp) -> LensHypothesis:
+    return LensHypothesis(hyp.mapping, hyp.f_px, np.asarray(pp, float), hyp.coeffs,
+                          hyp.alpha_max_rad)
+
+
+def _pp_search(problem, images, seeds, hyp, thr_px, size, quick_images, quick_seeds):
+    """Principal point by grid search around ``hyp``'s.
+
+    Poses absorb most of a principal point error (as a rotation), so the linear refit
+    alone hardly moves it; the pixel cost of the best pose still tells. Offsets up to
+    12 % of the image size in 3 % steps are scored with P3P poses alone on
+    ``quick_images``; the three best
+    (and the start) with refined poses; then 1 % steps around the winner.
+
+    Returns ``(hypothesis, cost)`` (pixel MSAC cost with refined poses, px^2).
+    """
+    size = np.asarray(size, float)
+    centre = hyp.principal_point_px
+    steps = np.arange(-4, 5) * 0.03
+    grid = [_with_pp(hyp, centre + size * [dx, dy]) for dx in steps for dy in steps]
+    quick = [problem.cost(quick_images, quick_seeds, h, thr_px, 64, False) for h in grid]
+    shortlist = [grid[k] for k in np.argsort(quick)[:3]]
+    scored = [(problem.cost(images, seeds, h, thr_px, 300, True), k, h)
+              for k, h in enumerate([hyp, *shortlist])]
+    best_cost, _, best = min(scored, key=lambda x: (x[0], x[1]))
+    centre = best.principal_point_px
+    for dx in (-0.01, 0.0, 0.01):
+        for dy in (-0.01, 0.0, 0.01):
+            if dx == 0 and dy == 0:
+                continue
+            cand = _with_pp(best, centre + size * [dx, dy])
+            c = problem.cost(images, seeds, cand, thr_px, 300, True)
+            if c < best_cost:
+                best, best_cost = cand, c
+    return best, best_cost
 
 
 def _fit_radial(uv, p_cam, fit_principal_point: bool, pp0: np.ndarray):
@@ -706,11 +770,16 @@ def initialize_poses(
         say(f"zoom:   {h_z.describe()} (cost {c_z / thr**2:.4g})")
     zoomed.sort(key=lambda x: x[0])
 
-    # 4. refit the best hypotheses: poses <-> principal point and radial polynomial
+    # 4. refit the best hypotheses: principal point, then poses <-> radial polynomial
     ranked = []
-    for c_z, hyp, ro in zoomed[:2]:
+    for _, hyp, ro in zoomed[:2]:
         thr = 0.01 * ro
-        h_r, c_r = _refit(problem, scoring, seeds, hyp, thr, c_z * thr**2, say)
+        h_p, c_p = _pp_search(
+            problem, scoring, seeds, hyp, thr, (width, height), coarse_images, coarse_seeds
+        )
+        if h_p is not hyp:
+            say(f"principal point: {h_p.describe()} (cost {c_p / thr**2:.4g})")
+        h_r, c_r = _refit(problem, scoring, seeds, h_p, thr, c_p, say)
         ranked.append((c_r / thr**2, hyp, h_r, ro))
     ranked.sort(key=lambda x: x[0])
     ranked += [(c, h, h, ro) for c, h, ro in zoomed[2:]]
@@ -768,6 +837,7 @@ def _pose_all(problem, images, lens, thr, seeds, min_inliers):
     ok = np.zeros(n_images, bool)
     inlier_mask = np.zeros(problem.uv.shape[0], bool)
     fails: dict[int, str] = {}
+    problem.all_observations = True
     for i in images:
         res, _, err = problem.run(i, lens, thr, seeds[i], 1000, min_inliers, True)
         inl = err < thr
@@ -779,6 +849,7 @@ def _pose_all(problem, images, lens, thr, seeds, min_inliers):
             fails[int(i)] = res.reason or (
                 f"only {int(inl.sum())} observations within {thr:.1f} px of the pose"
             )
+    problem.all_observations = False
     return rot, trans, ok, inlier_mask, fails, lens
 
 
@@ -809,7 +880,7 @@ def _refit(problem, images, seeds, hyp, thr, cost, say):
             res, _, err = problem.run(i, best, thr, s, 300, 4, True)
             if np.all(np.isfinite(res.R)):
                 rot[i], trans[i] = res.R, res.t
-                mask[problem.obs_of_image[i]] = err < 2.0 * thr
+                mask[problem.scored_of_image[i]] = err < 2.0 * thr
         uv, pc = _inlier_geometry(problem, images, rot, trans, mask)
         new = _fit_radial(uv, pc, True, best.principal_point_px)
         if new is None:

@@ -6,9 +6,20 @@ import numpy as np
 import pytest
 
 from gtsam_sphere.initialize import (
+    InitialisationError,
     InitialisationResult,
     bearings_from_pixels,
     initialize_poses,
+    observed_disc,
+)
+from gtsam_sphere.simulate.lenses import (
+    Equidistant,
+    Equisolid,
+    KannalaBrandt,
+    PinholeBrown,
+    Stereographic,
+    Unified,
+    incidence_angle,
 )
 
 
@@ -43,6 +54,24 @@ def _project(p_cam: np.ndarray, mapping: str, f_px: float, pp: np.ndarray, max_a
     return uv, alpha <= max_alpha
 
 
+def _cube_corner_targets(rng: np.random.Generator, n: int) -> np.ndarray:
+    """A 3D calibration object: grids on three orthogonal 0.6 m faces meeting at the origin."""
+    side = int(np.ceil(np.sqrt(n / 3)))
+    g = (np.arange(side) + 0.5) * 0.6 / side
+    a, b = (x.ravel() for x in np.meshgrid(g, g))
+    z = np.zeros_like(a)
+    return np.concatenate([np.column_stack(c) for c in ((a, b, z), (a, z, b), (z, a, b))])
+
+
+def _look_at(centre: np.ndarray, target: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """cam_from_world rotation with +z from ``centre`` towards ``target``, random roll."""
+    z = target - centre
+    z /= np.linalg.norm(z)
+    x = np.cross(z, rng.normal(size=3))
+    x /= np.linalg.norm(x)
+    return np.stack([x, np.cross(z, x), z])
+
+
 def simulate(
     seed: int,
     mapping: str,
@@ -55,18 +84,41 @@ def simulate(
     target_noise_m: float = 0.01,
     pixel_noise_px: float = 0.3,
     blunder_fraction: float = 0.03,
+    lens=None,
+    scene: str = "room",
 ):
-    """Synthetic dataset: random poses inside a room, targets on its surfaces."""
+    """Synthetic dataset: random poses inside a room, targets on its surfaces.
+
+    ``lens`` (a :mod:`gtsam_sphere.simulate.lenses` object) replaces ``mapping``/``f_px``
+    (its own field cap applies); ``scene="object"`` puts the targets on a cube corner
+    (:func:`_cube_corner_targets`) seen from outside.
+    """
     rng = np.random.default_rng(seed)
-    xyz_true = _room_targets(rng, n_targets)
+    if scene == "object":
+        xyz_true = _cube_corner_targets(rng, n_targets)
+    else:
+        xyz_true = _room_targets(rng, n_targets)
     pp = np.array([(width - 1) / 2.0, (height - 1) / 2.0])
     rots, trans, uv_all, img_all, tgt_all = [], [], [], [], []
     for i in range(n_images):
-        rot = _random_rotation(rng)
-        centre = rng.uniform([-1.0, -1.0, -0.5], [1.0, 1.0, 0.5])
+        if scene == "object":  # outside the object's octant, looking roughly at it
+            centre = rng.uniform(0.8, 1.6, 3) * rng.choice([1.0, 1.0, 1.0, -0.3], 3)
+            centre = np.abs(centre) + 0.3
+            rot = _look_at(centre, rng.uniform(0.0, 0.4, 3), rng)
+        else:
+            rot = _random_rotation(rng)
+            centre = rng.uniform([-1.0, -1.0, -0.5], [1.0, 1.0, 0.5])
         t = -rot @ centre
         p_cam = xyz_true @ rot.T + t
-        uv, vis = _project(p_cam, mapping, f_px, pp, np.radians(fov_deg) / 2)
+        if lens is None:
+            uv, vis = _project(p_cam, mapping, f_px, pp, np.radians(fov_deg) / 2)
+        else:
+            uv = lens.project(p_cam)
+            vis = np.all(np.isfinite(uv), axis=1)
+            uv = np.where(vis[:, None], uv, -1e9)
+        if scene == "object":  # a face is seen from the side its normal points to
+            normals = np.eye(3)[np.argmax(xyz_true == 0, axis=1)]
+            vis &= np.einsum("ij,ij->i", normals, centre - xyz_true) > 0.05
         vis &= (uv[:, 0] > -0.5) & (uv[:, 0] < width - 0.5)
         vis &= (uv[:, 1] > -0.5) & (uv[:, 1] < height - 0.5)
         idx = np.flatnonzero(vis)
@@ -217,3 +269,93 @@ def test_bad_shapes_raise():
         initialize_poses(
             np.zeros((4, 2)), np.zeros(4, int), np.full(4, 5), np.zeros((1, 3)), 100, 100, 1
         )
+
+
+def _radius_error(res: InitialisationResult, lens, uv_px: np.ndarray) -> float:
+    """Largest error (px) of the initial lens' radius over the observed field."""
+    rays = lens.unproject(uv_px)
+    alpha = incidence_angle(rays)
+    alpha = alpha[np.isfinite(alpha)]
+    grid = np.linspace(0.02, np.percentile(alpha, 99), 40)
+    p = np.column_stack([np.sin(grid), np.zeros_like(grid), np.cos(grid)])
+    true_r = lens.project(p)[:, 0] - lens.cx
+    return float(np.max(np.abs(res.lens.radius_px(grid) - true_r)))
+
+
+# (lens, image size): image circles from 0.25x the short side to 1.3x the half diagonal,
+# principal points off the centre, five families and two lenses between them
+_CIRCLE_CASES = {
+    "equisolid250-circle0.25": (Equisolid, dict(f=0.25 * 2000 / 1.7740, max_angle_deg=125.0),
+                                2000, 2000, (0.0, 0.0)),
+    "stereo200-circle0.45-offset": (Stereographic, dict(f=0.45 * 1600 / 2.3835,
+                                                        max_angle_deg=100.0),
+                                    1600, 1600, (0.06, -0.05)),
+    "unified220-circle0.33": (Unified, dict(f=0.33 * 2400 / np.tan(np.radians(55)),
+                                            xi=1.0, max_angle_deg=110.0),
+                              2400, 2400, (0.0, 0.03)),
+    "kb190-circle0.5": (KannalaBrandt, dict(f=700 / 1.58, k1=-0.02, k2=0.003,
+                                            max_angle_deg=95.0), 1600, 1400, (0.0, 0.0)),
+    "equidistant180-fullframe1.3": (Equidistant, dict(f=1.3 * 1000.0 / (np.pi / 2),
+                                                      max_angle_deg=90.0),
+                                    1600, 1200, (0.08, 0.0)),
+    "pinhole-brown-offset": (PinholeBrown, dict(f=900.0, k1=-0.05, max_angle_deg=60.0),
+                             1600, 1200, (-0.1, 0.1)),
+}
+
+
+@pytest.mark.parametrize("case", sorted(_CIRCLE_CASES))
+def test_focal_scale_and_principal_point_from_the_pixels(case):
+    """The initial lens matches the truth over the observed field, whatever the circle."""
+    cls, params, width, height, (ox, oy) = _CIRCLE_CASES[case]
+    cx, cy = (width - 1) / 2 + ox * width, (height - 1) / 2 + oy * height
+    lens = cls(cx=cx, cy=cy, **params)
+    data = simulate(3, "", 0.0, 0.0, width, height, 12, 900, lens=lens)
+    messages: list[str] = []
+    res = initialize_poses(**_inputs(data), rng=np.random.default_rng(0),
+                           progress=messages.append)
+    short = min(width, height)
+    # the radius of the initial lens is right to 3 % of the observed radius ...
+    r_obs = np.percentile(np.hypot(*(data["uv_px"] - [cx, cy]).T), 99)
+    assert _radius_error(res, lens, data["uv_px"]) < 0.03 * r_obs, messages
+    # ... the principal point to 2 % of the short side, the poses to ~1-2 deg
+    assert np.hypot(*(res.principal_point_px - [cx, cy])) < 0.02 * short, messages
+    good = [i for i in range(data["n_images"]) if res.ok[i]]
+    assert len(good) == data["n_images"]
+    rot_err, _ = _pose_errors(res, data, good)
+    assert rot_err < 2.0, rot_err
+    mask = res.ok[data["obs_image"]]
+    assert res.inlier_mask[mask].mean() > 0.9
+
+
+def test_small_circle_is_found_as_a_disc():
+    lens = Equisolid(f=300.0, cx=1100.0, cy=1000.0, max_angle_deg=125.0)
+    data = simulate(4, "", 0.0, 0.0, 2000, 2000, 12, 900, lens=lens)
+    centre, radius = observed_disc(data["uv_px"], 2000, 2000)
+    assert np.hypot(*(centre - [1100.0, 1000.0])) < 15.0
+    assert abs(radius - 300.0 * 2 * np.sin(np.radians(62.5))) < 20.0
+    # a full-frame image (observations up to the sensor's edges) is not a disc
+    wide = Equidistant(f=500.0, cx=799.5, cy=599.5, max_angle_deg=89.0)
+    data = simulate(4, "", 0.0, 0.0, 1600, 1200, 12, 900, lens=wide)
+    assert observed_disc(data["uv_px"], 1600, 1200) is None
+
+
+def test_3d_object_picks_the_right_focal_scale():
+    """A cube corner of three tag grids seen by a 1280x800 fisheye (real case of issue 12)."""
+    lens = KannalaBrandt(f=330.0, cx=640.0, cy=400.0, k1=-0.01, k2=0.002, max_angle_deg=98.0)
+    data = simulate(5, "", 0.0, 0.0, 1280, 800, 15, 300, lens=lens, scene="object",
+                    target_noise_m=0.0, blunder_fraction=0.0)
+    res = initialize_poses(**_inputs(data), rng=np.random.default_rng(0))
+    assert abs(res.lens.f_px / 330.0 - 1) < 0.05, res.lens.describe()
+    good = np.flatnonzero(res.ok)
+    assert good.size >= 13
+    rot_err, pos_err = _pose_errors(res, data, good)
+    assert rot_err < 2.0 and pos_err < 0.05, (rot_err, pos_err)
+
+
+def test_unexplainable_data_fails_fast_with_the_hypotheses_tried():
+    """Pixels unrelated to the targets: no hypothesis explains them -> a clear error."""
+    data = simulate(6, "equidistant", 300.0, 180.0, 1200, 1000, 8, 400)
+    rng = np.random.default_rng(1)
+    data["obs_target"] = rng.permutation(data["obs_target"])
+    with pytest.raises(InitialisationError, match="no lens hypothesis explains"):
+        initialize_poses(**_inputs(data), rng=np.random.default_rng(0))
