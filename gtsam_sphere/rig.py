@@ -116,7 +116,11 @@ class PoseMean:
     t : ndarray, shape (3,)
         The mean pose.
     weights : ndarray, shape (n,)
-        Final robust weight of each sample, in ``[0, 1]``.
+        Final robust weight of each sample, in ``[0, 1]``: the product of its
+        rotation and translation weights.
+    downweighted : ndarray of bool, shape (n,)
+        Samples whose rotation or translation weight is below 1/2 (beyond
+        ``CAUCHY_K`` robust standard deviations from the mean).
     rotation_deviation_rad : ndarray, shape (n,)
         Angle between each sample's rotation and ``R``.
     translation_deviation : ndarray, shape (n, 3)
@@ -126,6 +130,7 @@ class PoseMean:
     R: np.ndarray
     t: np.ndarray
     weights: np.ndarray
+    downweighted: np.ndarray
     rotation_deviation_rad: np.ndarray
     translation_deviation: np.ndarray
 
@@ -150,7 +155,7 @@ class PoseMean:
         n = len(w)
         out: dict = {
             "n_frames": int(n),
-            "n_frames_downweighted": int(np.sum(w < 0.5)),
+            "n_frames_downweighted": int(np.sum(self.downweighted)),
             "rotation_max_deg": float(np.degrees(np.max(self.rotation_deviation_rad))),
             "translation_max": float(np.max(np.linalg.norm(self.translation_deviation, axis=1))),
         }
@@ -236,6 +241,7 @@ def robust_pose_mean(R: np.ndarray, t: np.ndarray, iterations: int = 50) -> Pose
         R=R_mean,
         t=t_mean,
         weights=w_rot * w_t,
+        downweighted=(w_rot < 0.5) | (w_t < 0.5),
         rotation_deviation_rad=angle,
         translation_deviation=t - t_mean,
     )
@@ -331,6 +337,40 @@ def _framed_poses(calib: Calibration, frame_of: dict[str, str | None]) -> dict[s
     return out
 
 
+def _disconnected_error(remaining: list[str], placed: list[str]) -> DatasetError:
+    return DatasetError(
+        f"camera(s) {remaining} share no frame with camera(s) {placed}: their "
+        "cam_from_rig cannot be found. Capture rig frames (images taken at one rig "
+        "pose, given the same 'frame' id) in which each of them and one of "
+        f"{placed} both see at least 4 targets (the cameras need not see the same "
+        "targets: surveyed targets tie them); images without a 'frame', or skipped "
+        "by the calibration of their camera, do not count"
+    )
+
+
+def check_rig_connected(camera_ids: list[str], frames: dict[str, set[str]]) -> None:
+    """Raise :class:`DatasetError` unless shared frames link every camera to ``camera_ids[0]``.
+
+    Parameters
+    ----------
+    camera_ids : list of str
+    frames : dict of str -> set of str
+        Camera id -> the frames in which it has an image.
+    """
+    placed = [camera_ids[0]]
+    remaining = list(camera_ids[1:])
+    grew = True
+    while remaining and grew:
+        grew = False
+        for b in list(remaining):
+            if any(frames[b] & frames[a] for a in placed):
+                placed.append(b)
+                remaining.remove(b)
+                grew = True
+    if remaining:
+        raise _disconnected_error(remaining, placed)
+
+
 def place_cameras(
     camera_ids: list[str], poses: dict[str, dict[str, Pose]], say: Callable[[str], None]
 ) -> tuple[dict[str, Pose], dict[str, dict]]:
@@ -376,15 +416,7 @@ def place_cameras(
                     best = (n, b, a)
         n, b, a = best
         if n == 0:
-            placed = list(cam_from_rig)
-            raise DatasetError(
-                f"camera(s) {remaining} share no frame with camera(s) {placed}: their "
-                "cam_from_rig cannot be found. Capture rig frames (images taken at one rig "
-                "pose, given the same 'frame' id) in which each of them and one of "
-                f"{placed} both see at least 4 targets (the cameras need not see the same "
-                "targets: surveyed targets tie them); images without a 'frame', or skipped "
-                "by the calibration of their camera, do not count"
-            )
+            raise _disconnected_error(remaining, list(cam_from_rig))
         frames = [f for f in poses[b] if f in poses[a]]
         R_s, t_s = [], []
         for f in frames:
@@ -475,8 +507,10 @@ def calibrate_rig(
     Raises
     ------
     DatasetError
-        A camera whose calibration fails on its input (its message, prefixed with
-        the camera), cameras that share no frame with the others.
+        Cameras that share no frame with the others (checked before any
+        calibration, and again with the images the calibrations kept); a camera
+        whose calibration fails on its input (every failing camera named, with its
+        message).
     """
     say = progress or (lambda _line: None)
     ids = rig.camera_ids
@@ -486,6 +520,14 @@ def calibrate_rig(
         per_camera = {cid: options.get(cid, CalibrationOptions()) for cid in ids}
     datasets = split_rig(rig)
     frame_of = dict(zip(rig.image_ids, rig.image_frame))
+    # before hours of work: are the cameras linked by shared frames at all?
+    check_rig_connected(
+        ids,
+        {
+            cid: {f for f, c in zip(rig.image_frame, rig.image_camera) if f and ids[c] == cid}
+            for cid in ids
+        },
+    )
 
     calibs: dict[str, Calibration] = {}
     failures: list[tuple[str, BaseException]] = []
