@@ -517,12 +517,22 @@ def test_simulated_rig_back_to_back_without_shared_targets():
 # -- real data: OpenCV's omnidirectional stereo pair --------------------------------
 
 
+#: what the known initialisation bug looks like in ``statistics.distrust`` (see below)
+_INIT_BUG_SIGNS = (
+    "the radial mapping folds at",
+    "did not converge",
+    "normal equations are singular",
+)
+
+
 @pytest.mark.slow
 @pytest.mark.xfail(
     strict=False,
-    reason="single-camera initialisation fails on these catadioptric cameras (known bug in "
-    "initialize.py, being fixed separately): each camera converges to a folded radial "
-    "mapping (RMS ~200 px, 15 deg field), so the rig result is untrusted (exit 1)",
+    raises=AssertionError,
+    reason="known bug in the single-camera initialisation (initialize.py, being fixed "
+    "separately) on these catadioptric cameras: cam0 converges to a folded radial mapping "
+    "(RMS 226 px, 15 deg field, untrusted) so the rig exits 1 and its extrinsics are wrong; "
+    "cam1 calibrates (0.395 px)",
 )
 def test_opencv_omnidir_stereo_rig(tmp_path, capsys):
     """Calibrate the real stereo pair as a rig; OpenCV's references (../shared/data/README.md):
@@ -533,7 +543,8 @@ def test_opencv_omnidir_stereo_rig(tmp_path, capsys):
     captured = capsys.readouterr()
     print(captured.out)
     print(captured.err)
-    assert code in (0, 1), captured.err  # never bad input: the file is valid
+    if code not in (0, 1):  # the file is valid: never bad input, never a crash
+        pytest.fail(f"exit {code}: {captured.err}")
     calib = load_calibration(out)
     R, t = calib.cam_from_rig["cam1"]
     rms = {c: calib.statistics["cameras"][c]["rms_px"] for c in calib.camera_ids}
@@ -542,8 +553,14 @@ def test_opencv_omnidir_stereo_rig(tmp_path, capsys):
         f"rotation {np.degrees(rotation_angle(R)):.3f} deg; "
         f"distrust {calib.statistics['distrust']}"
     )
-    assert code == 0, calib.statistics["distrust"]
+    assert calib.statistics["n_frames"] == 39
+    assert calib.statistics["rig_adjustment"] == RIG_ADJUSTMENT
+    # an untrusted result must be the known initialisation bug (expected failure), not
+    # something else (a real failure)
+    distrust = calib.statistics["distrust"]
+    if code == 1 and not all(any(s in r for s in _INIT_BUG_SIGNS) for r in distrust):
+        pytest.fail(f"untrusted for another reason than the known initialisation bug: {distrust}")
+    assert code == 0, distrust
     assert rms["cam0"] < 0.439 and rms["cam1"] < 0.407
     assert np.linalg.norm(t) == pytest.approx(0.1605, abs=0.003)
     assert np.degrees(rotation_angle(R)) == pytest.approx(7.93, abs=0.3)
-    assert calib.statistics["n_frames"] == 39
