@@ -172,6 +172,39 @@ def test_rig_dataset_skips_and_drops_per_camera():
     assert len(parse_rig_dataset(doc).dropped) == 1
 
 
+_JUNK = [None, 0, -1, 1.5, True, "", "x", [], {}, [1, 2], {"a": 1}, float("nan"), 10**400]
+
+
+def _mutations(doc):
+    """Every (container, key) of a document, for replacing one item by junk."""
+    stack = [doc]
+    while stack:
+        node = stack.pop()
+        items = node.items() if isinstance(node, dict) else enumerate(node)
+        for key, value in list(items):
+            yield node, key
+            if isinstance(value, (dict, list)):
+                stack.append(value)
+
+
+def test_rig_dataset_junk_anywhere_is_a_dataset_error_or_accepted():
+    base = small_rig_doc()
+    n = 0
+    for k in range(len(list(_mutations(copy.deepcopy(base))))):
+        for junk in _JUNK[k % 3 :: 3]:
+            doc = copy.deepcopy(base)
+            target = next(x for i, x in enumerate(_mutations(doc)) if i == k)
+            target[0][target[1]] = junk
+            try:
+                rig = parse_rig_dataset(doc, "fuzz.json")
+            except DatasetError as exc:
+                assert "fuzz.json" in str(exc)
+            else:
+                split_rig(rig)
+            n += 1
+    assert n > 100
+
+
 # -- robust averaging, the spanning tree ------------------------------------------
 
 
