@@ -122,6 +122,14 @@ class Calibration:
         return write_json_atomic(path, self.to_dict())
 
 
+class RigCameraError(DatasetError, AttributeError):
+    """``.camera`` of a rig calibration: a rig has no single camera.
+
+    A :class:`DatasetError` (the command line exits 2 with the message) and an
+    ``AttributeError`` (``hasattr(calib, "camera")`` is False for a rig).
+    """
+
+
 def _pose_dict(R: np.ndarray, t: np.ndarray) -> dict:
     return {"R": np.asarray(R, float), "t": np.asarray(t, float)}
 
@@ -196,13 +204,13 @@ class RigCalibration:
 
     @property
     def camera(self) -> SphereCamera:
-        """Not defined for a rig: raises :class:`DatasetError` (use ``cameras[id]``).
+        """Not defined for a rig: raises :class:`RigCameraError` (use ``cameras[id]``).
 
         A rig has no single camera, and silently handing code written for
         ``calibration@1`` the first camera would pair it with the other cameras'
         images; ``cameras[camera_ids[0]]`` is the rig's reference camera.
         """
-        raise DatasetError(
+        raise RigCameraError(
             f"this is a rig calibration (calibration@2) with cameras {self.camera_ids}: "
             f"use .cameras[id] (e.g. .cameras[{self.camera_ids[0]!r}], the rig's reference "
             "camera) or .camera_calibration(id) for one camera"

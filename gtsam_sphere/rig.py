@@ -632,6 +632,12 @@ def calibrate_rig(
         "trusted": not distrust,
         "distrust": distrust,
         "untrusted_cameras": [c for c in ids if not calibs[c].statistics.get("trusted", True)],
+        "warnings": [
+            f"camera {c!r}: cam_from_rig rests on a single frame shared with "
+            f"{precision[c]['parent']!r}; its precision is unknown"
+            for c in ids
+            if precision[c].get("parent") is not None and precision[c]["n_frames"] < 2
+        ],
         "frame_spread_rotation_deg_median": float(
             np.median([s["rotation_spread_deg"] for s in frame_spread])
         )

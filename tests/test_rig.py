@@ -356,6 +356,7 @@ def test_calibration_v2_round_trip(tmp_path):
     assert back.cam_from_rig["cam1"][1].shape == (3,)
     assert np.allclose(back.cam_from_world_R[1], img1[0])
     assert back.statistics["cameras"]["cam1"]["rms_px"] == 0.39
+    assert not hasattr(back, "camera")
     with pytest.raises(DatasetError, match=r"rig calibration .* use \.cameras\[id\]"):
         _ = back.camera
     one = back.camera_calibration("cam1")
