@@ -6,18 +6,28 @@ Pipeline, one module per stage: :mod:`dataset` (data contract) ->
 :mod:`evaluate` (check points) -> report.
 """
 
-from .calibration import Calibration, load_calibration
+from .calibration import Calibration, RigCalibration, load_calibration
 from .camera import Model, SphereCamera
-from .dataset import Dataset, DatasetError, load_checkpoints, load_dataset
+from .dataset import (
+    Dataset,
+    DatasetError,
+    RigDataset,
+    load_checkpoints,
+    load_dataset,
+    load_rig_dataset,
+)
 
 __all__ = [
     "Calibration",
     "Dataset",
     "DatasetError",
     "Model",
+    "RigCalibration",
+    "RigDataset",
     "SphereCamera",
     "load_calibration",
     "load_checkpoints",
     "load_dataset",
+    "load_rig_dataset",
 ]
 __version__ = "0.1.0"

@@ -1,4 +1,5 @@
-"""The calibration result: ``calibration@1`` writing and :func:`load_calibration`."""
+"""The calibration result: ``calibration@1`` / ``calibration@2`` (rigs) writing and
+:func:`load_calibration`."""
 
 from __future__ import annotations
 
@@ -9,7 +10,14 @@ from pathlib import Path
 import numpy as np
 
 from .camera import SphereCamera
-from .dataset import CALIBRATION_FORMAT, DatasetError, _check_format, read_json, write_json_atomic
+from .dataset import (
+    CALIBRATION_FORMAT,
+    RIG_CALIBRATION_FORMAT,
+    DatasetError,
+    _check_format,
+    read_json,
+    write_json_atomic,
+)
 
 
 @dataclass
@@ -93,9 +101,7 @@ class Calibration:
 
     def to_dict(self) -> dict:
         """The ``gtsam-sphere/calibration@1`` document."""
-        camera = self.camera.to_dict()
-        if self.camera.correction is not None:
-            camera["correction"] = self.camera.correction.to_dict()
+        camera = camera_to_dict(self.camera)
         doc = {
             "format": CALIBRATION_FORMAT,
             "model": self.model,
@@ -114,6 +120,169 @@ class Calibration:
     def save(self, path: str | os.PathLike) -> Path:
         """Write the ``calibration@1`` file atomically."""
         return write_json_atomic(path, self.to_dict())
+
+
+class RigCameraError(DatasetError, AttributeError):
+    """``.camera`` of a rig calibration: a rig has no single camera.
+
+    A :class:`DatasetError` (the command line exits 2 with the message) and an
+    ``AttributeError`` (``hasattr(calib, "camera")`` is False for a rig).
+    """
+
+
+def _pose_dict(R: np.ndarray, t: np.ndarray) -> dict:
+    return {"R": np.asarray(R, float), "t": np.asarray(t, float)}
+
+
+@dataclass
+class RigCalibration:
+    """A calibrated rig (``calibration@2``): several cameras fixed to one body.
+
+    The rig frame is the frame of ``camera_ids[0]`` (its ``cam_from_rig`` is the
+    identity). Poses map points ``p_cam = R @ p + t``, world frame and units of the
+    dataset.
+
+    Attributes
+    ----------
+    camera_ids : list of str, length C
+    cameras : dict of str -> SphereCamera
+        Camera id -> model with ``project(points_cam (N,3)) -> (N,2)`` px and
+        ``unproject(uv (N,2)) -> (N,3)`` rays, as ``calibration@1``'s camera.
+    models : dict of str -> str
+        Camera id -> model name (``"radial+knn"``, ...).
+    cam_from_rig : dict of str -> (ndarray (3, 3), ndarray (3,))
+        Camera id -> ``(R, t)``: ``p_cam = R @ p_rig + t`` (dataset units).
+    frame_ids : list of str, length F
+    rig_from_world_R : ndarray, shape (F, 3, 3)
+    rig_from_world_t : ndarray, shape (F, 3)
+        ``p_rig = R @ p_world + t`` per frame.
+    image_ids : list of str, length M
+    image_camera : list of str, length M
+        Camera id of each image.
+    image_frame : list of (str or None), length M
+        Frame id of each image, ``None`` for an image with a pose of its own.
+    cam_from_world_R : ndarray, shape (M, 3, 3)
+    cam_from_world_t : ndarray, shape (M, 3)
+        Every image's pose; for a framed image ``cam_from_rig * rig_from_world``.
+    target_ids : list of str, length T
+    target_xyz : ndarray, shape (T, 3)
+        Adjusted target coordinates, world frame.
+    statistics : dict
+        Whole-rig figures (``rms_px``, ``n_observations``, ``n_rejected``, ``trusted``,
+        ``distrust``, ``rig_adjustment``) and ``statistics["cameras"][id]`` per camera
+        (``rms_px`` and the rest of ``calibration@1``'s statistics, plus the
+        precision of ``cam_from_rig``).
+    extra : dict
+        Other top-level entries of the file.
+    """
+
+    camera_ids: list[str]
+    cameras: dict[str, SphereCamera]
+    models: dict[str, str]
+    cam_from_rig: dict[str, tuple[np.ndarray, np.ndarray]]
+    frame_ids: list[str]
+    rig_from_world_R: np.ndarray
+    rig_from_world_t: np.ndarray
+    image_ids: list[str]
+    image_camera: list[str]
+    image_frame: list[str | None]
+    cam_from_world_R: np.ndarray
+    cam_from_world_t: np.ndarray
+    target_ids: list[str]
+    target_xyz: np.ndarray
+    statistics: dict
+    units: str = "m"
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def model(self) -> str:
+        """The model of every camera, or ``"cam0=radial+knn,cam1=radial"`` when they differ."""
+        names = [self.models[c] for c in self.camera_ids]
+        if len(set(names)) == 1:
+            return names[0]
+        return ",".join(f"{c}={self.models[c]}" for c in self.camera_ids)
+
+    @property
+    def camera(self) -> SphereCamera:
+        """Not defined for a rig: raises :class:`RigCameraError` (use ``cameras[id]``).
+
+        A rig has no single camera, and silently handing code written for
+        ``calibration@1`` the first camera would pair it with the other cameras'
+        images; ``cameras[camera_ids[0]]`` is the rig's reference camera.
+        """
+        raise RigCameraError(
+            f"this is a rig calibration (calibration@2) with cameras {self.camera_ids}: "
+            f"use .cameras[id] (e.g. .cameras[{self.camera_ids[0]!r}], the rig's reference "
+            "camera) or .camera_calibration(id) for one camera"
+        )
+
+    def camera_calibration(self, camera_id: str) -> Calibration:
+        """One camera of the rig as a ``calibration@1`` :class:`Calibration`.
+
+        Its images (with their ``cam_from_world``), the rig's targets, and that
+        camera's statistics (``statistics["cameras"][camera_id]``).
+        """
+        if camera_id not in self.cameras:
+            raise KeyError(f"no camera {camera_id!r} in this rig (cameras {self.camera_ids})")
+        mine = np.array([c == camera_id for c in self.image_camera], bool)
+        per_camera = self.extra.get("camera_results", {}).get(camera_id, {})
+        return Calibration(
+            model=self.models[camera_id],
+            camera=self.cameras[camera_id],
+            image_ids=[i for i, m in zip(self.image_ids, mine) if m],
+            cam_from_world_R=self.cam_from_world_R[mine],
+            cam_from_world_t=self.cam_from_world_t[mine],
+            target_ids=list(self.target_ids),
+            target_xyz=self.target_xyz,
+            statistics=dict(self.statistics.get("cameras", {}).get(camera_id, {})),
+            units=self.units,
+            extra=dict(per_camera) if isinstance(per_camera, dict) else {},
+        )
+
+    def to_dict(self) -> dict:
+        """The ``gtsam-sphere/calibration@2`` document."""
+        cameras = []
+        for cid in self.camera_ids:
+            R, t = self.cam_from_rig[cid]
+            entry = {"id": cid, "model": self.models[cid]}
+            entry.update(camera_to_dict(self.cameras[cid]))
+            entry["cam_from_rig"] = _pose_dict(R, t)
+            cameras.append(entry)
+        images = []
+        for k, iid in enumerate(self.image_ids):
+            entry = {"id": iid, "camera": self.image_camera[k]}
+            if self.image_frame[k] is not None:
+                entry["frame"] = self.image_frame[k]
+            entry["cam_from_world"] = _pose_dict(self.cam_from_world_R[k], self.cam_from_world_t[k])
+            images.append(entry)
+        doc = {
+            "format": RIG_CALIBRATION_FORMAT,
+            "model": self.model,
+            "units": self.units,
+            "cameras": cameras,
+            "frames": [
+                {"id": f, "rig_from_world": _pose_dict(R, t)}
+                for f, R, t in zip(self.frame_ids, self.rig_from_world_R, self.rig_from_world_t)
+            ],
+            "images": images,
+            "targets": [{"id": t, "xyz": p} for t, p in zip(self.target_ids, self.target_xyz)],
+            "statistics": self.statistics,
+        }
+        doc.update(self.extra)
+        return doc
+
+    def save(self, path: str | os.PathLike) -> Path:
+        """Write the ``calibration@2`` file atomically."""
+        return write_json_atomic(path, self.to_dict())
+
+
+def camera_to_dict(camera: SphereCamera) -> dict:
+    """The model-specific camera entries of a calibration file (``calibration@1``'s
+    ``camera``, each of ``calibration@2``'s ``cameras[]``), learned correction included."""
+    out = camera.to_dict()
+    if camera.correction is not None:
+        out["correction"] = camera.correction.to_dict()
+    return out
 
 
 def camera_from_dict(cam: dict, source: str = "<calibration>") -> SphereCamera:
@@ -183,8 +352,38 @@ def _finite_array(value, shape: tuple, what: str, source: str) -> np.ndarray:
     return arr
 
 
-def load_calibration(path: str | os.PathLike) -> Calibration:
-    """Read a ``gtsam-sphere/calibration@1`` file.
+def _pose(obj, what: str, source: str) -> tuple[np.ndarray, np.ndarray]:
+    """``(R (3, 3), t (3,))`` of a ``{"R", "t"}`` pose object; ``what`` names it in messages."""
+    if not isinstance(obj, dict):
+        raise DatasetError(f"{source}: {what} is not a pose object {{R, t}}")
+    R = _finite_array(obj.get("R"), (3, 3), f"{what} R", source)
+    t = _finite_array(obj.get("t"), (3,), f"{what} t", source)
+    return R, t
+
+
+def _image_poses(images: list, source: str) -> tuple[np.ndarray, np.ndarray]:
+    R, t = [], []
+    for im in images:
+        if not isinstance(im.get("cam_from_world"), dict):
+            raise DatasetError(f"{source}: image {im['id']!r} has no cam_from_world {{R, t}}")
+        Ri, ti = _pose(im["cam_from_world"], f"image {im['id']!r}", source)
+        R.append(Ri)
+        t.append(ti)
+    return np.array(R, float).reshape(-1, 3, 3), np.array(t, float).reshape(-1, 3)
+
+
+def _statistics(doc: dict, source: str, version: str) -> dict:
+    statistics = doc.get("statistics", {})
+    if not isinstance(statistics, dict):
+        raise DatasetError(f"{source}: 'statistics' must be an object")
+    for key in ("rms_px", "n_observations", "n_rejected"):
+        if key not in statistics:
+            raise DatasetError(f"{source}: statistics misses {key!r} ({version} requires it)")
+    return statistics
+
+
+def load_calibration(path: str | os.PathLike) -> Calibration | RigCalibration:
+    """Read a ``gtsam-sphere/calibration@1`` or ``calibration@2`` (rig) file.
 
     Parameters
     ----------
@@ -192,9 +391,12 @@ def load_calibration(path: str | os.PathLike) -> Calibration:
 
     Returns
     -------
-    Calibration
-        ``.camera.project`` / ``.camera.unproject`` reproduce the model that
-        was estimated, learned correction included.
+    Calibration or RigCalibration
+        ``calibration@1``: a :class:`Calibration`, whose ``.camera.project`` /
+        ``.camera.unproject`` reproduce the model that was estimated, learned
+        correction included. ``calibration@2``: a :class:`RigCalibration` with
+        ``.cameras[id]`` (the same per camera) and ``.cam_from_rig[id] = (R, t)``;
+        its ``.camera`` raises (a rig has no single camera).
 
     Raises
     ------
@@ -203,31 +405,90 @@ def load_calibration(path: str | os.PathLike) -> Calibration:
     """
     source = str(path)
     doc = read_json(path)
+    if isinstance(doc, dict) and doc.get("format") == RIG_CALIBRATION_FORMAT:
+        return _rig_calibration_from_doc(doc, source)
     _check_format(doc, CALIBRATION_FORMAT, source)
     camera = camera_from_dict(doc.get("camera", {}), source)
     images = _entries(doc, "images", source)
     targets = _entries(doc, "targets", source)
-    R, t = [], []
-    for im in images:
-        pose = im.get("cam_from_world")
-        if not isinstance(pose, dict):
-            raise DatasetError(f"{source}: image {im['id']!r} has no cam_from_world {{R, t}}")
-        R.append(_finite_array(pose.get("R"), (3, 3), f"image {im['id']!r} R", source))
-        t.append(_finite_array(pose.get("t"), (3,), f"image {im['id']!r} t", source))
+    R, t = _image_poses(images, source)
     xyz = [_finite_array(tg.get("xyz"), (3,), f"target {tg['id']!r} xyz", source) for tg in targets]
-    statistics = doc.get("statistics", {})
-    if not isinstance(statistics, dict):
-        raise DatasetError(f"{source}: 'statistics' must be an object")
-    for key in ("rms_px", "n_observations", "n_rejected"):
-        if key not in statistics:
-            raise DatasetError(f"{source}: statistics misses {key!r} (calibration@1 requires it)")
+    statistics = _statistics(doc, source, "calibration@1")
     known = {"format", "model", "units", "camera", "images", "targets", "statistics"}
     return Calibration(
         model=str(doc.get("model", "sphere")),
         camera=camera,
         image_ids=[str(im["id"]) for im in images],
-        cam_from_world_R=np.array(R, float).reshape(-1, 3, 3),
-        cam_from_world_t=np.array(t, float).reshape(-1, 3),
+        cam_from_world_R=R,
+        cam_from_world_t=t,
+        target_ids=[str(tg["id"]) for tg in targets],
+        target_xyz=np.array(xyz, float).reshape(-1, 3),
+        statistics=statistics,
+        units=doc.get("units", "m"),
+        extra={k: v for k, v in doc.items() if k not in known},
+    )
+
+
+def _rig_calibration_from_doc(doc: dict, source: str) -> RigCalibration:
+    """Validate a ``calibration@2`` document into a :class:`RigCalibration`."""
+    cameras = _entries(doc, "cameras", source)
+    if not cameras:
+        raise DatasetError(f"{source}: 'cameras' must list at least one camera")
+    camera_ids: list[str] = []
+    models, models_by_id, cam_from_rig = {}, {}, {}
+    for k, cam in enumerate(cameras):
+        cid = cam["id"]
+        if not isinstance(cid, str) or cid in models:
+            raise DatasetError(f"{source}: cameras[{k}] id {cid!r} is not a new string id")
+        camera_ids.append(cid)
+        models[cid] = camera_from_dict(cam, f"{source}: camera {cid!r}")
+        models_by_id[cid] = str(cam.get("model", "sphere"))
+        if not isinstance(cam.get("cam_from_rig"), dict):
+            raise DatasetError(f"{source}: camera {cid!r} has no cam_from_rig {{R, t}}")
+        cam_from_rig[cid] = _pose(cam["cam_from_rig"], f"camera {cid!r} cam_from_rig", source)
+    frames = _entries(doc, "frames", source)
+    frame_ids = [str(f["id"]) for f in frames]
+    frame_poses = [
+        _pose(f.get("rig_from_world"), f"frame {f['id']!r} rig_from_world", source) for f in frames
+    ]
+    images = _entries(doc, "images", source)
+    image_camera, image_frame = [], []
+    for im in images:
+        if im.get("camera") not in models:
+            raise DatasetError(
+                f"{source}: image {im['id']!r} names unknown camera {im.get('camera')!r}"
+            )
+        image_camera.append(im["camera"])
+        frame = im.get("frame")
+        if frame is not None and str(frame) not in frame_ids:
+            raise DatasetError(f"{source}: image {im['id']!r} names unknown frame {frame!r}")
+        image_frame.append(None if frame is None else str(frame))
+    R, t = _image_poses(images, source)
+    targets = _entries(doc, "targets", source)
+    xyz = [_finite_array(tg.get("xyz"), (3,), f"target {tg['id']!r} xyz", source) for tg in targets]
+    statistics = _statistics(doc, source, "calibration@2")
+    per_camera = statistics.get("cameras")
+    if not isinstance(per_camera, dict) or any(
+        not isinstance(per_camera.get(c), dict) or "rms_px" not in per_camera[c] for c in camera_ids
+    ):
+        raise DatasetError(
+            f"{source}: statistics.cameras must give each camera's rms_px "
+            "(calibration@2 requires it)"
+        )
+    known = {"format", "model", "units", "cameras", "frames", "images", "targets", "statistics"}
+    return RigCalibration(
+        camera_ids=camera_ids,
+        cameras=models,
+        models=models_by_id,
+        cam_from_rig=cam_from_rig,
+        frame_ids=frame_ids,
+        rig_from_world_R=np.array([p[0] for p in frame_poses], float).reshape(-1, 3, 3),
+        rig_from_world_t=np.array([p[1] for p in frame_poses], float).reshape(-1, 3),
+        image_ids=[str(im["id"]) for im in images],
+        image_camera=image_camera,
+        image_frame=image_frame,
+        cam_from_world_R=R,
+        cam_from_world_t=t,
         target_ids=[str(tg["id"]) for tg in targets],
         target_xyz=np.array(xyz, float).reshape(-1, 3),
         statistics=statistics,

@@ -122,9 +122,14 @@ def _print_statistics(stats: dict) -> None:
 
 
 def cmd_calibrate(args) -> int:
+    from . import rig
     from .calibrate import calibrate
     from .dataset import load_dataset
 
+    if rig.is_rig_dataset(args.dataset):  # dataset@2: the rig path (gtsam_sphere/rig.py)
+        return rig.run_cli(args, _options_from_args(args), None if args.quiet else stderr_progress)
+    if args.camera_model:
+        raise DatasetError("--camera-model applies to a rig (dataset@2); use --model")
     dataset = load_dataset(args.dataset)
     for iid, why in dataset.skipped_images:
         print(f"warning: image {iid!r} skipped: {why}", file=sys.stderr)
@@ -271,10 +276,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_demo)
 
-    p = sub.add_parser("calibrate", help="calibrate a dataset@1 file")
+    p = sub.add_parser("calibrate", help="calibrate a dataset@1 file (or a dataset@2 rig)")
     p.add_argument("dataset")
-    p.add_argument("-o", "--output", required=True, help="calibration@1 file to write")
+    p.add_argument("-o", "--output", required=True, help="calibration@1 (@2 for a rig) to write")
     _add_calibration_options(p)
+    p.add_argument(
+        "--camera-model",
+        action="append",
+        metavar="CAMERA=MODEL",
+        help="rigs: the model of one camera (repeat per camera; --model for the others)",
+    )
     p.set_defaults(func=cmd_calibrate)
 
     p = sub.add_parser("evaluate", help="3D accuracy against check points, image statistics")

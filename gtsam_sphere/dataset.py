@@ -1,4 +1,4 @@
-"""The data contract: ``dataset@1`` and ``checkpoints@1`` in, atomic JSON out.
+"""The data contract: ``dataset@1``, ``dataset@2`` (rigs) and ``checkpoints@1`` in, atomic JSON out.
 
 See ``../shared/spec/dataset.md`` (mirrored in ``docs/conventions.md``).
 Every problem found in an input file is reported with the item it concerns
@@ -23,8 +23,10 @@ from typing import Any
 import numpy as np
 
 DATASET_FORMAT = "gtsam-sphere/dataset@1"
+RIG_DATASET_FORMAT = "gtsam-sphere/dataset@2"
 CHECKPOINTS_FORMAT = "gtsam-sphere/checkpoints@1"
 CALIBRATION_FORMAT = "gtsam-sphere/calibration@1"
+RIG_CALIBRATION_FORMAT = "gtsam-sphere/calibration@2"
 
 #: Largest accepted image side (px). Beyond this, pixel arithmetic leaves the range
 #: where float64 resolves a tenth of a pixel, and no real sensor comes close.
@@ -211,59 +213,31 @@ def read_json(path: str | os.PathLike) -> Any:
         raise DatasetError(f"{path}: not valid JSON for this reader ({str(exc)[:120]})") from None
 
 
-def parse_dataset(
-    doc: Any, source: str = "<dataset>", min_observations_per_image: int = 4
-) -> Dataset:
-    """Validate a ``dataset@1`` document (already parsed JSON) into a :class:`Dataset`.
-
-    Parameters
-    ----------
-    doc : dict
-        The JSON document.
-    source : str
-        Name used in messages (usually the file path).
-    min_observations_per_image : int
-        Images with fewer usable observations are skipped and reported.
-
-    Returns
-    -------
-    Dataset
-        Observations outside the image are left out and listed in
-        ``dropped``; images with fewer than ``min_observations_per_image``
-        usable observations are left out and listed in ``skipped_images``.
-
-    Raises
-    ------
-    DatasetError
-        For anything that makes the file unusable: wrong format or version,
-        missing keys, duplicate target or image ids, an observation of an
-        unknown target, NaN/inf, wrong types, an image side above
-        ``MAX_IMAGE_SIDE_PX``, a coordinate or sigma above ``MAX_ABS_COORDINATE``
-        in magnitude, a positive sigma below ``MIN_POSITIVE_SIGMA``, no usable
-        image. The message names the item.
-    """
-    _check_format(doc, DATASET_FORMAT, source)
-    units = doc.get("units", "m")
-    if not isinstance(units, str):
-        raise DatasetError(f"{source}: 'units' must be a string, got {_short(units)}")
-    cam = doc.get("camera")
-    if not isinstance(cam, dict):
-        raise DatasetError(f"{source}: missing 'camera' object with width and height")
+def _image_size(cam: Any, where: str) -> tuple[int, int]:
+    """Validated ``(width, height)`` (px) of a camera object; ``where`` names it in messages."""
     try:
         width, height = cam["width"], cam["height"]
     except KeyError as exc:
-        raise DatasetError(f"{source}: camera is missing {exc.args[0]!r}") from None
+        raise DatasetError(f"{where} is missing {exc.args[0]!r}") from None
     for name, v in (("width", width), ("height", height)):
         if isinstance(v, (bool, np.bool_)) or not isinstance(v, numbers.Integral) or v <= 0:
-            raise DatasetError(
-                f"{source}: camera.{name} must be a positive integer, got {_short(v)}"
-            )
+            raise DatasetError(f"{where}.{name} must be a positive integer, got {_short(v)}")
         if v > MAX_IMAGE_SIDE_PX:
-            raise DatasetError(
-                f"{source}: camera.{name} {_short(v)} exceeds {MAX_IMAGE_SIDE_PX} px"
-            )
-    width, height = int(width), int(height)
+            raise DatasetError(f"{where}.{name} {_short(v)} exceeds {MAX_IMAGE_SIDE_PX} px")
+    return int(width), int(height)
 
+
+def _parse_units(doc: dict, source: str) -> str:
+    units = doc.get("units", "m")
+    if not isinstance(units, str):
+        raise DatasetError(f"{source}: 'units' must be a string, got {_short(units)}")
+    return units
+
+
+def _parse_targets(
+    doc: dict, source: str
+) -> tuple[list[str], np.ndarray, np.ndarray, dict[str, int]]:
+    """Validate ``targets``: ids (T,), xyz (T, 3), sigma (T,) (NaN when absent), id -> row."""
     targets = doc.get("targets")
     if not isinstance(targets, list) or not targets:
         raise DatasetError(f"{source}: 'targets' must be a non-empty list")
@@ -298,10 +272,113 @@ def parse_dataset(
         ids.append(tid)
         xyz.append(p)
         sigma.append(float(s))
+    return ids, np.array(xyz), np.array(sigma), index
 
+
+def _image_list(doc: dict, source: str) -> list:
     images = doc.get("images")
     if not isinstance(images, list) or not images:
         raise DatasetError(f"{source}: 'images' must be a non-empty list")
+    return images
+
+
+def _image_id(im: Any, k: int, seen: set[str], source: str) -> str:
+    """The validated, unique string id of ``images[k]`` (added to ``seen``)."""
+    if not isinstance(im, dict):
+        raise DatasetError(f"{source}: images[{k}] must be an object")
+    iid = im.get("id")
+    if not isinstance(iid, str) or not iid:
+        raise DatasetError(f"{source}: images[{k}] has no string 'id' (got {_short(iid)})")
+    if iid in seen:
+        raise DatasetError(f"{source}: duplicate image id {iid!r} (images[{k}])")
+    seen.add(iid)
+    return iid
+
+
+def _image_observations(
+    im: dict,
+    iid: str,
+    index: dict[str, int],
+    width: int,
+    height: int,
+    source: str,
+    dropped: list[tuple[str, str, str]],
+) -> tuple[list[tuple[int, np.ndarray]], int]:
+    """Validate one image's observations against a ``width`` x ``height`` image.
+
+    Returns the usable ``(target row, uv (2,))`` pairs and the number of input
+    observations; those outside the image are appended to ``dropped``.
+    """
+    observations = im.get("observations", [])
+    if not isinstance(observations, list):
+        raise DatasetError(f"{source}: image {iid!r}: 'observations' must be a list")
+    rows: list[tuple[int, np.ndarray]] = []
+    seen_targets: set[str] = set()
+    for q, ob in enumerate(observations):
+        where = f"{source}: image {iid!r} observation {q}"
+        if not isinstance(ob, dict):
+            raise DatasetError(f"{where}: must be an object")
+        tid = ob.get("target")
+        if not isinstance(tid, str):
+            raise DatasetError(f"{where}: 'target' must be a string id, got {_short(tid)}")
+        if tid not in index:
+            raise DatasetError(f"{where}: unknown target id {tid!r}")
+        if tid in seen_targets:
+            raise DatasetError(f"{where}: target {tid!r} observed twice in this image")
+        seen_targets.add(tid)
+        if "uv" not in ob:
+            raise DatasetError(f"{where}: missing 'uv'")
+        p = _finite_vector(ob["uv"], 2, where + " uv")
+        if not (-0.5 <= p[0] <= width - 0.5 and -0.5 <= p[1] <= height - 0.5):
+            dropped.append((iid, tid, f"uv {p.tolist()} outside the {width}x{height} image"))
+            continue
+        rows.append((index[tid], p))
+    return rows, len(observations)
+
+
+def _too_few(n: int, min_observations_per_image: int) -> str:
+    return f"only {n} usable observations (< {min_observations_per_image})"
+
+
+def parse_dataset(
+    doc: Any, source: str = "<dataset>", min_observations_per_image: int = 4
+) -> Dataset:
+    """Validate a ``dataset@1`` document (already parsed JSON) into a :class:`Dataset`.
+
+    Parameters
+    ----------
+    doc : dict
+        The JSON document.
+    source : str
+        Name used in messages (usually the file path).
+    min_observations_per_image : int
+        Images with fewer usable observations are skipped and reported.
+
+    Returns
+    -------
+    Dataset
+        Observations outside the image are left out and listed in
+        ``dropped``; images with fewer than ``min_observations_per_image``
+        usable observations are left out and listed in ``skipped_images``.
+
+    Raises
+    ------
+    DatasetError
+        For anything that makes the file unusable: wrong format or version,
+        missing keys, duplicate target or image ids, an observation of an
+        unknown target, NaN/inf, wrong types, an image side above
+        ``MAX_IMAGE_SIDE_PX``, a coordinate or sigma above ``MAX_ABS_COORDINATE``
+        in magnitude, a positive sigma below ``MIN_POSITIVE_SIGMA``, no usable
+        image. The message names the item.
+    """
+    _check_format(doc, DATASET_FORMAT, source)
+    units = _parse_units(doc, source)
+    cam = doc.get("camera")
+    if not isinstance(cam, dict):
+        raise DatasetError(f"{source}: missing 'camera' object with width and height")
+    width, height = _image_size(cam, f"{source}: camera")
+    ids, xyz, sigma, index = _parse_targets(doc, source)
+    images = _image_list(doc, source)
     image_ids: list[str] = []
     seen_images: set[str] = set()
     obs_image, obs_target, uv = [], [], []
@@ -309,43 +386,11 @@ def parse_dataset(
     dropped: list[tuple[str, str, str]] = []
     n_input = 0
     for k, im in enumerate(images):
-        if not isinstance(im, dict):
-            raise DatasetError(f"{source}: images[{k}] must be an object")
-        iid = im.get("id")
-        if not isinstance(iid, str) or not iid:
-            raise DatasetError(f"{source}: images[{k}] has no string 'id' (got {_short(iid)})")
-        if iid in seen_images:
-            raise DatasetError(f"{source}: duplicate image id {iid!r} (images[{k}])")
-        seen_images.add(iid)
-        observations = im.get("observations", [])
-        if not isinstance(observations, list):
-            raise DatasetError(f"{source}: image {iid!r}: 'observations' must be a list")
-        n_input += len(observations)
-        rows: list[tuple[int, np.ndarray]] = []
-        seen_targets: set[str] = set()
-        for q, ob in enumerate(observations):
-            where = f"{source}: image {iid!r} observation {q}"
-            if not isinstance(ob, dict):
-                raise DatasetError(f"{where}: must be an object")
-            tid = ob.get("target")
-            if not isinstance(tid, str):
-                raise DatasetError(f"{where}: 'target' must be a string id, got {_short(tid)}")
-            if tid not in index:
-                raise DatasetError(f"{where}: unknown target id {tid!r}")
-            if tid in seen_targets:
-                raise DatasetError(f"{where}: target {tid!r} observed twice in this image")
-            seen_targets.add(tid)
-            if "uv" not in ob:
-                raise DatasetError(f"{where}: missing 'uv'")
-            p = _finite_vector(ob["uv"], 2, where + " uv")
-            if not (-0.5 <= p[0] <= width - 0.5 and -0.5 <= p[1] <= height - 0.5):
-                dropped.append((iid, tid, f"uv {p.tolist()} outside the {width}x{height} image"))
-                continue
-            rows.append((index[tid], p))
+        iid = _image_id(im, k, seen_images, source)
+        rows, n = _image_observations(im, iid, index, width, height, source, dropped)
+        n_input += n
         if len(rows) < min_observations_per_image:
-            skipped.append(
-                (iid, f"only {len(rows)} usable observations (< {min_observations_per_image})")
-            )
+            skipped.append((iid, _too_few(len(rows), min_observations_per_image)))
             continue
         m = len(image_ids)
         image_ids.append(iid)
@@ -361,8 +406,8 @@ def parse_dataset(
         height=int(height),
         units=units,
         target_ids=ids,
-        target_xyz=np.array(xyz),
-        target_sigma=np.array(sigma),
+        target_xyz=xyz,
+        target_sigma=sigma,
         image_ids=image_ids,
         obs_image=np.array(obs_image, int),
         obs_target=np.array(obs_target, int),
@@ -388,6 +433,275 @@ def load_dataset(path: str | os.PathLike, min_observations_per_image: int = 4) -
     Dataset
     """
     return parse_dataset(read_json(path), str(path), min_observations_per_image)
+
+
+# -- rigs: dataset@2 ---------------------------------------------------------------
+
+
+@dataclass
+class RigDataset:
+    """A validated ``dataset@2``: several cameras fixed to one body, flattened.
+
+    Attributes
+    ----------
+    camera_ids : list of str, length C
+        In file order; ``camera_ids[0]`` is the rig frame (its ``cam_from_rig``
+        is the identity).
+    camera_sizes : list of (int, int), length C
+        ``(width, height)`` of each camera, px.
+    units : str
+        Object-space units (``"m"`` unless the file says otherwise).
+    target_ids : list of str, length T
+    target_xyz : ndarray, shape (T, 3)
+        Approximate world coordinates, in ``units``; shared by all cameras.
+    target_sigma : ndarray, shape (T,)
+        As :class:`Dataset` (``0`` exact control, ``NaN`` absent).
+    image_ids : list of str, length M
+        Images kept (all cameras, file order).
+    image_camera : ndarray of int, shape (M,)
+        Index into ``camera_ids`` per kept image.
+    image_frame : list of (str or None), length M
+        Frame id of each kept image (the rig pose it was taken at), ``None``
+        for an image with a pose of its own.
+    obs_image, obs_target : ndarray of int, shape (N,)
+    uv_px : ndarray, shape (N, 2)
+        As :class:`Dataset`.
+    skipped_images : list of (str, str)
+        ``(image id, reason)`` for images left out (all cameras).
+    dropped : list of (str, str, str)
+        ``(image id, target id, reason)`` for observations left out.
+    """
+
+    camera_ids: list[str]
+    camera_sizes: list[tuple[int, int]]
+    units: str
+    target_ids: list[str]
+    target_xyz: np.ndarray
+    target_sigma: np.ndarray
+    image_ids: list[str]
+    image_camera: np.ndarray
+    image_frame: list[str | None]
+    obs_image: np.ndarray
+    obs_target: np.ndarray
+    uv_px: np.ndarray
+    skipped_images: list[tuple[str, str]] = field(default_factory=list)
+    dropped: list[tuple[str, str, str]] = field(default_factory=list)
+    source: str | None = None
+    #: camera id of every input image (kept or skipped), for per-camera counts
+    input_image_camera: dict[str, str] = field(default_factory=dict)
+    #: input observations per camera id
+    n_input_observations: dict[str, int] = field(default_factory=dict)
+
+    @property
+    def frame_ids(self) -> list[str]:
+        """Frame ids of the kept images, in order of first appearance."""
+        return list(dict.fromkeys(f for f in self.image_frame if f is not None))
+
+
+def parse_rig_dataset(
+    doc: Any, source: str = "<dataset>", min_observations_per_image: int = 4
+) -> RigDataset:
+    """Validate a ``dataset@2`` document (a rig of cameras) into a :class:`RigDataset`.
+
+    Targets, observations and images follow exactly the rules of
+    :func:`parse_dataset` (``dataset@1``), each image checked against the size of
+    its own camera.
+
+    Parameters
+    ----------
+    doc : dict
+        The JSON document.
+    source : str
+        Name used in messages (usually the file path).
+    min_observations_per_image : int
+        Images with fewer usable observations are skipped and reported.
+
+    Returns
+    -------
+    RigDataset
+
+    Raises
+    ------
+    DatasetError
+        Everything :func:`parse_dataset` refuses, and: a missing or empty
+        ``cameras`` list, a camera without a string id, duplicate camera ids, an
+        image naming an unknown camera (or none), a ``frame`` that is not a
+        non-empty string, two images of one camera in one frame, a camera with no
+        usable image. The message names the item.
+    """
+    _check_format(doc, RIG_DATASET_FORMAT, source)
+    units = _parse_units(doc, source)
+    if "camera" in doc:
+        raise DatasetError(
+            f"{source}: dataset@2 describes its cameras in 'cameras' (a list), not 'camera'"
+        )
+    cameras = doc.get("cameras")
+    if not isinstance(cameras, list) or not cameras:
+        raise DatasetError(f"{source}: 'cameras' must be a non-empty list of {{id, width, height}}")
+    camera_ids: list[str] = []
+    sizes: list[tuple[int, int]] = []
+    for k, cam in enumerate(cameras):
+        if not isinstance(cam, dict):
+            raise DatasetError(f"{source}: cameras[{k}] must be an object, got {_short(cam)}")
+        cid = cam.get("id")
+        if not isinstance(cid, str) or not cid:
+            raise DatasetError(f"{source}: cameras[{k}] has no string 'id' (got {_short(cid)})")
+        if cid in camera_ids:
+            raise DatasetError(f"{source}: duplicate camera id {cid!r} (cameras[{k}])")
+        sizes.append(_image_size(cam, f"{source}: camera {cid!r}"))
+        camera_ids.append(cid)
+    camera_index = {c: i for i, c in enumerate(camera_ids)}
+    ids, xyz, sigma, index = _parse_targets(doc, source)
+    images = _image_list(doc, source)
+
+    image_ids: list[str] = []
+    image_camera: list[int] = []
+    image_frame: list[str | None] = []
+    seen_images: set[str] = set()
+    frame_owner: dict[tuple[str, str], str] = {}
+    obs_image, obs_target, uv = [], [], []
+    skipped: list[tuple[str, str]] = []
+    dropped: list[tuple[str, str, str]] = []
+    input_camera: dict[str, str] = {}
+    n_input = dict.fromkeys(camera_ids, 0)
+    for k, im in enumerate(images):
+        iid = _image_id(im, k, seen_images, source)
+        cid = im.get("camera")
+        if not isinstance(cid, str):
+            raise DatasetError(
+                f"{source}: image {iid!r}: 'camera' must name one of {camera_ids}, "
+                f"got {_short(cid)}"
+            )
+        if cid not in camera_index:
+            raise DatasetError(
+                f"{source}: image {iid!r}: unknown camera {cid!r} (cameras are {camera_ids})"
+            )
+        frame = im.get("frame")
+        if frame is not None:
+            if not isinstance(frame, str) or not frame:
+                raise DatasetError(
+                    f"{source}: image {iid!r}: 'frame' must be a non-empty string id, "
+                    f"got {_short(frame)}"
+                )
+            other = frame_owner.get((frame, cid))
+            if other is not None:
+                raise DatasetError(
+                    f"{source}: frame {frame!r} holds two images of camera {cid!r} "
+                    f"({other!r} and {iid!r}); a frame holds at most one image per camera"
+                )
+            frame_owner[(frame, cid)] = iid
+        input_camera[iid] = cid
+        width, height = sizes[camera_index[cid]]
+        rows, n = _image_observations(im, iid, index, width, height, source, dropped)
+        n_input[cid] += n
+        if len(rows) < min_observations_per_image:
+            skipped.append((iid, _too_few(len(rows), min_observations_per_image)))
+            continue
+        m = len(image_ids)
+        image_ids.append(iid)
+        image_camera.append(camera_index[cid])
+        image_frame.append(frame)
+        for t_idx, p in rows:
+            obs_image.append(m)
+            obs_target.append(t_idx)
+            uv.append(p)
+    for c, cid in enumerate(camera_ids):
+        if c not in image_camera:
+            why = [f"{i}: {r}" for i, r in skipped if input_camera.get(i) == cid][:5]
+            detail = f" ({'; '.join(why)})" if why else " (no image names it)"
+            raise DatasetError(f"{source}: camera {cid!r} has no usable image{detail}")
+    return RigDataset(
+        camera_ids=camera_ids,
+        camera_sizes=sizes,
+        units=units,
+        target_ids=ids,
+        target_xyz=xyz,
+        target_sigma=sigma,
+        image_ids=image_ids,
+        image_camera=np.array(image_camera, int),
+        image_frame=image_frame,
+        obs_image=np.array(obs_image, int),
+        obs_target=np.array(obs_target, int),
+        uv_px=np.array(uv, float).reshape(-1, 2),
+        skipped_images=skipped,
+        dropped=dropped,
+        source=source,
+        input_image_camera=input_camera,
+        n_input_observations=n_input,
+    )
+
+
+def load_rig_dataset(path: str | os.PathLike, min_observations_per_image: int = 4) -> RigDataset:
+    """Read and validate a ``gtsam-sphere/dataset@2`` file (:func:`parse_rig_dataset`)."""
+    return parse_rig_dataset(read_json(path), str(path), min_observations_per_image)
+
+
+def dataset_version(doc: Any, source: str = "<dataset>") -> int:
+    """``1`` for a ``dataset@1`` document, ``2`` for a ``dataset@2`` (rig) document.
+
+    Raises
+    ------
+    DatasetError
+        Anything else (naming the format found and the ones known).
+    """
+    if isinstance(doc, dict) and doc.get("format") == RIG_DATASET_FORMAT:
+        return 2
+    if isinstance(doc, dict) and doc.get("format") == DATASET_FORMAT:
+        return 1
+    if isinstance(doc, dict) and isinstance(doc.get("format"), str):
+        fmt = doc["format"]
+        if fmt.startswith("gtsam-sphere/dataset@"):
+            raise DatasetError(
+                f"{source}: unsupported version {_short(fmt)}; this reader knows "
+                f"{DATASET_FORMAT!r} and {RIG_DATASET_FORMAT!r}"
+            )
+    _check_format(doc, DATASET_FORMAT, source)  # raises, naming what was found
+    return 1
+
+
+def split_rig(rig: RigDataset) -> dict[str, Dataset]:
+    """One ``dataset@1``-equivalent :class:`Dataset` per camera of a rig.
+
+    Every camera's dataset shares the rig's targets (same ids, arrays and
+    sigmas), holds that camera's kept images in file order with their
+    observations, and the skipped images and dropped observations of that
+    camera. Frames are not part of a :class:`Dataset`; ``rig.image_frame``
+    keeps them.
+
+    Parameters
+    ----------
+    rig : RigDataset
+
+    Returns
+    -------
+    dict of str -> Dataset
+        Camera id -> its dataset, in the order of ``rig.camera_ids``.
+    """
+    out: dict[str, Dataset] = {}
+    for c, cid in enumerate(rig.camera_ids):
+        keep = np.flatnonzero(rig.image_camera == c)
+        new_index = -np.ones(len(rig.image_ids), int)
+        new_index[keep] = np.arange(len(keep))
+        obs = np.flatnonzero(new_index[rig.obs_image] >= 0)
+        mine = {i for i, cam in rig.input_image_camera.items() if cam == cid}
+        width, height = rig.camera_sizes[c]
+        out[cid] = Dataset(
+            width=width,
+            height=height,
+            units=rig.units,
+            target_ids=rig.target_ids,
+            target_xyz=rig.target_xyz,
+            target_sigma=rig.target_sigma,
+            image_ids=[rig.image_ids[i] for i in keep],
+            obs_image=new_index[rig.obs_image[obs]],
+            obs_target=rig.obs_target[obs],
+            uv_px=rig.uv_px[obs],
+            skipped_images=[(i, r) for i, r in rig.skipped_images if i in mine],
+            dropped=[d for d in rig.dropped if d[0] in mine],
+            source=f"{rig.source} (camera {cid})" if rig.source else f"camera {cid}",
+            n_input_observations=rig.n_input_observations.get(cid, 0),
+        )
+    return out
 
 
 def load_checkpoints(path: str | os.PathLike) -> tuple[list[str], np.ndarray, str]:

@@ -1,0 +1,751 @@
+"""Rig calibration, first version: each camera alone, then averaged extrinsics.
+
+A rig (``dataset@2``) is several cameras fixed to one body; images that share a
+``frame`` were taken at one rig pose. This module calibrates it in three steps:
+
+1. every camera is calibrated alone by the single-camera pipeline
+   (:func:`gtsam_sphere.calibrate.calibrate`, each camera with its own options),
+   all in the dataset's world frame (the targets tie them);
+2. ``cam_from_rig`` of each camera is the robust average, over the frames it shares
+   with an already placed camera, of the relative pose
+   ``cam_from_world_b * inverse(cam_from_world_a) * cam_from_rig_a``: the cameras are
+   placed along a maximum spanning tree (most shared frames first) grown from
+   ``cameras[0]``, whose frame is the rig frame (``cam_from_rig`` = identity).
+   Rotations: chordal L2 mean (the weighted sum of the matrices projected onto
+   SO(3)) with iteratively reweighted Cauchy weights on the angular deviations;
+   translations: the per-axis median, then the same reweighted mean;
+3. ``rig_from_world`` of each frame is the same robust mean over the frame's
+   cameras of ``inverse(cam_from_rig) * cam_from_world``, and every framed image
+   gets ``cam_from_world = cam_from_rig * rig_from_world`` (an image without a frame
+   keeps its own pose).
+
+The spread of the relative poses over the frames (rotation in degrees, translation
+in dataset units) is reported as the precision of each camera's extrinsics.
+
+This is **not** the joint rig adjustment (one graph in which the frames' rig poses
+and the cameras' ``cam_from_rig`` are variables and every observation constrains
+them together): the intrinsics of each camera come from its own adjustment, with
+one free pose per image, and the rig constraint is imposed afterwards. The output
+says so in ``statistics["rig_adjustment"]`` (:data:`RIG_ADJUSTMENT`), and
+``statistics["rms_px_rig"]`` gives the reprojection error with the rig-composed
+poses, which the joint adjustment would minimise.
+
+Poses follow the data contract: ``cam_from_world = (R, t)`` maps ``p_cam = R @ p_world + t``;
+``cam_from_rig`` maps rig-frame points to the camera frame, ``rig_from_world`` world
+points to the rig frame. Units are the dataset's.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from .calibrate import CalibrationOptions, calibrate
+from .calibration import Calibration, RigCalibration
+from .camera import Model
+from .dataset import DatasetError, RigDataset, read_json, split_rig
+
+logger = logging.getLogger(__name__)
+
+#: ``statistics["rig_adjustment"]`` of this first version (no joint adjustment yet)
+RIG_ADJUSTMENT = "per-camera + averaged extrinsics"
+#: Cauchy scale of the robust means, in robust standard deviations of the deviations
+CAUCHY_K = 3.0
+#: median of the norm of a 3-D standard normal vector: turns a median deviation into a
+#: per-axis standard deviation
+_MEDIAN_NORM_3D = 1.5382
+
+Pose = tuple[np.ndarray, np.ndarray]
+
+
+# -- pose algebra ------------------------------------------------------------------
+
+
+def compose(a: Pose, b: Pose) -> Pose:
+    """``a * b`` for poses ``(R (3, 3), t (3,))``: first ``b``, then ``a``."""
+    return a[0] @ b[0], a[0] @ b[1] + a[1]
+
+
+def inverse(a: Pose) -> Pose:
+    """The inverse pose: ``(R^T, -R^T t)``."""
+    return a[0].T, -a[0].T @ a[1]
+
+
+def rotation_angle(R: np.ndarray) -> np.ndarray:
+    """Rotation angle(s) in radians, accurate near 0 and pi.
+
+    Parameters
+    ----------
+    R : ndarray, shape (3, 3) or (n, 3, 3)
+
+    Returns
+    -------
+    float or ndarray, shape (n,)
+        ``atan2(|axis * sin|, cos)`` from the skew and trace parts.
+    """
+    R = np.asarray(R, float)
+    w = np.stack(
+        [
+            R[..., 2, 1] - R[..., 1, 2],
+            R[..., 0, 2] - R[..., 2, 0],
+            R[..., 1, 0] - R[..., 0, 1],
+        ],
+        axis=-1,
+    )
+    cos = (np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0
+    return np.arctan2(0.5 * np.linalg.norm(w, axis=-1), cos)
+
+
+def project_to_rotation(M: np.ndarray) -> np.ndarray:
+    """The rotation nearest to ``M`` (3, 3) in the Frobenius norm (SVD)."""
+    U, _, Vt = np.linalg.svd(M)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt)) or 1.0])
+    return U @ D @ Vt
+
+
+@dataclass
+class PoseMean:
+    """A robust mean of several samples of one pose, with the samples' spread.
+
+    Attributes
+    ----------
+    R : ndarray, shape (3, 3)
+    t : ndarray, shape (3,)
+        The mean pose.
+    weights : ndarray, shape (n,)
+        Final robust weight of each sample, in ``[0, 1]``: the product of its
+        rotation and translation weights.
+    downweighted : ndarray of bool, shape (n,)
+        Samples whose rotation or translation weight is below 1/2 (beyond
+        ``CAUCHY_K`` robust standard deviations from the mean).
+    rotation_deviation_rad : ndarray, shape (n,)
+        Angle between each sample's rotation and ``R``.
+    translation_deviation : ndarray, shape (n, 3)
+        Each sample's ``t`` minus the mean ``t`` (units of the samples).
+    """
+
+    R: np.ndarray
+    t: np.ndarray
+    weights: np.ndarray
+    downweighted: np.ndarray
+    rotation_deviation_rad: np.ndarray
+    translation_deviation: np.ndarray
+
+    def spread(self) -> dict:
+        """The samples' spread: how well they agree (the precision of the mean).
+
+        Returns
+        -------
+        dict
+            ``n_frames`` (samples), ``n_frames_downweighted`` (weight below 1/2),
+            ``rotation_spread_deg`` (weighted RMS angle between a sample and the
+            mean), ``rotation_max_deg``, ``translation_spread`` (3,) (weighted RMS
+            of each axis' deviation), ``translation_spread_norm`` (weighted RMS of
+            the 3-D deviation), ``translation_max``, and the standard errors of the
+            mean ``rotation_sigma_deg`` / ``translation_sigma`` (3,) (the spread
+            over the square root of the effective number of samples; frames are
+            treated as independent, which the shared intrinsics make optimistic).
+            Spreads are ``None`` for a single sample (no precision can be
+            estimated). Translations in the units of the samples.
+        """
+        w = self.weights
+        n = len(w)
+        out: dict = {
+            "n_frames": int(n),
+            "n_frames_downweighted": int(np.sum(self.downweighted)),
+            "rotation_max_deg": float(np.degrees(np.max(self.rotation_deviation_rad))),
+            "translation_max": float(np.max(np.linalg.norm(self.translation_deviation, axis=1))),
+        }
+        if n < 2:
+            out.update(
+                rotation_spread_deg=None,
+                translation_spread=None,
+                translation_spread_norm=None,
+                rotation_sigma_deg=None,
+                translation_sigma=None,
+            )
+            return out
+        sw = float(np.sum(w))
+        n_eff = sw**2 / float(np.sum(w**2))
+        rot = float(np.degrees(np.sqrt(np.sum(w * self.rotation_deviation_rad**2) / sw)))
+        axis = np.sqrt(np.sum(w[:, None] * self.translation_deviation**2, axis=0) / sw)
+        out.update(
+            rotation_spread_deg=rot,
+            translation_spread=axis,
+            translation_spread_norm=float(np.sqrt(np.sum(axis**2))),
+            rotation_sigma_deg=rot / np.sqrt(n_eff),
+            translation_sigma=axis / np.sqrt(n_eff),
+        )
+        return out
+
+
+def _cauchy_weights(d: np.ndarray, floor: float) -> np.ndarray:
+    """Cauchy weights of non-negative deviations ``d`` with a robust (median) scale."""
+    scale = max(float(np.median(d)) / _MEDIAN_NORM_3D, floor)
+    return 1.0 / (1.0 + (d / (CAUCHY_K * scale)) ** 2)
+
+
+def robust_pose_mean(R: np.ndarray, t: np.ndarray, iterations: int = 50) -> PoseMean:
+    """Robust mean of pose samples: reweighted chordal L2 rotation, reweighted translation.
+
+    Rotation: ``project_to_rotation(sum_i w_i R_i)`` (the chordal L2 mean), the
+    weights ``w_i`` Cauchy weights of the angle between ``R_i`` and the mean, scaled
+    by their median, iterated to a fixed point. Translation: the per-axis median,
+    then the weighted mean with Cauchy weights of ``|t_i - t|``, iterated likewise.
+    A sample's final weight is the product of its two weights.
+
+    Parameters
+    ----------
+    R : ndarray, shape (n, 3, 3)
+        Rotation samples (n >= 1).
+    t : ndarray, shape (n, 3)
+        Translation samples, any units.
+    iterations : int
+        Largest number of reweighting steps.
+
+    Returns
+    -------
+    PoseMean
+    """
+    R = np.asarray(R, float).reshape(-1, 3, 3)
+    t = np.asarray(t, float).reshape(-1, 3)
+    n = len(R)
+    if n == 0:
+        raise ValueError("robust_pose_mean needs at least one sample")
+    w_rot = np.ones(n)
+    R_mean = project_to_rotation(np.einsum("n,nij->ij", w_rot, R))
+    for _ in range(iterations):
+        angle = rotation_angle(np.einsum("ji,njk->nik", R_mean, R))
+        w_new = _cauchy_weights(angle, 1e-12)
+        R_mean = project_to_rotation(np.einsum("n,nij->ij", w_new, R))
+        converged = np.max(np.abs(w_new - w_rot)) < 1e-10
+        w_rot = w_new
+        if converged:
+            break
+    angle = rotation_angle(np.einsum("ji,njk->nik", R_mean, R))
+
+    t_mean = np.median(t, axis=0)
+    floor = 1e-12 * (1.0 + float(np.max(np.abs(t))))
+    w_t = np.ones(n)
+    for _ in range(iterations):
+        w_new = _cauchy_weights(np.linalg.norm(t - t_mean, axis=1), floor)
+        t_mean = np.sum(w_new[:, None] * t, axis=0) / np.sum(w_new)
+        converged = np.max(np.abs(w_new - w_t)) < 1e-10
+        w_t = w_new
+        if converged:
+            break
+    return PoseMean(
+        R=R_mean,
+        t=t_mean,
+        weights=w_rot * w_t,
+        downweighted=(w_rot < 0.5) | (w_t < 0.5),
+        rotation_deviation_rad=angle,
+        translation_deviation=t - t_mean,
+    )
+
+
+# -- options -----------------------------------------------------------------------
+
+
+def parse_camera_models(specs: list[str] | None, camera_ids: list[str]) -> dict[str, Model]:
+    """Per-camera models from ``--camera-model ID=MODEL`` options.
+
+    Parameters
+    ----------
+    specs : list of str or None
+        Each ``"cam1=radial+knn"``.
+    camera_ids : list of str
+        The rig's cameras.
+
+    Returns
+    -------
+    dict of str -> Model
+        Only the cameras named.
+
+    Raises
+    ------
+    DatasetError
+        A malformed item, an unknown camera or model, a camera named twice.
+    """
+    out: dict[str, Model] = {}
+    models = [m.value for m in Model]
+    for spec in specs or []:
+        cid, sep, name = spec.partition("=")
+        cid, name = cid.strip(), name.strip()
+        if not sep or not cid or not name:
+            raise DatasetError(f"--camera-model {spec!r}: expected CAMERA=MODEL, e.g. cam1=radial")
+        if cid not in camera_ids:
+            raise DatasetError(
+                f"--camera-model {spec!r}: unknown camera {cid!r} (cameras are {camera_ids})"
+            )
+        if name not in models:
+            raise DatasetError(f"--camera-model {spec!r}: unknown model {name!r} (one of {models})")
+        if cid in out:
+            raise DatasetError(f"--camera-model: camera {cid!r} is given a model twice")
+        out[cid] = Model(name)
+    return out
+
+
+def camera_options(
+    base: CalibrationOptions,
+    camera_ids: list[str],
+    models: dict[str, Model] | None = None,
+    brown_terms_given: bool = False,
+) -> dict[str, CalibrationOptions]:
+    """One :class:`CalibrationOptions` per camera: ``base`` with that camera's model.
+
+    Parameters
+    ----------
+    base : CalibrationOptions
+        Options for every camera (``--model`` and the rest).
+    camera_ids : list of str
+    models : dict of str -> Model, optional
+        Per-camera model overrides (``--camera-model``).
+    brown_terms_given : bool
+        Whether ``base.brown_terms`` was chosen by the user (``--ap``); if not, a
+        camera with another model gets that model's default terms.
+
+    Returns
+    -------
+    dict of str -> CalibrationOptions
+    """
+    models = models or {}
+    out = {}
+    for cid in camera_ids:
+        model = models.get(cid, base.model)
+        if model == base.model:
+            out[cid] = base
+        else:
+            terms = base.brown_terms if brown_terms_given else None
+            out[cid] = replace(base, model=model, brown_terms=terms)
+    return out
+
+
+# -- the rig calibration -----------------------------------------------------------
+
+
+def _framed_poses(calib: Calibration, frame_of: dict[str, str | None]) -> dict[str, Pose]:
+    """Frame id -> ``cam_from_world`` of the camera's adjusted images that have a frame."""
+    out = {}
+    for iid, R, t in zip(calib.image_ids, calib.cam_from_world_R, calib.cam_from_world_t):
+        frame = frame_of.get(iid)
+        if frame is not None:
+            out[frame] = (R, t)
+    return out
+
+
+def _disconnected_error(remaining: list[str], placed: list[str]) -> DatasetError:
+    return DatasetError(
+        f"camera(s) {remaining} share no frame with camera(s) {placed}: their "
+        "cam_from_rig cannot be found. Capture rig frames (images taken at one rig "
+        "pose, given the same 'frame' id) in which each of them and one of "
+        f"{placed} both see at least 4 targets (the cameras need not see the same "
+        "targets: surveyed targets tie them); images without a 'frame', or skipped "
+        "by the calibration of their camera, do not count"
+    )
+
+
+def check_rig_connected(camera_ids: list[str], frames: dict[str, set[str]]) -> None:
+    """Raise :class:`DatasetError` unless shared frames link every camera to ``camera_ids[0]``.
+
+    Parameters
+    ----------
+    camera_ids : list of str
+    frames : dict of str -> set of str
+        Camera id -> the frames in which it has an image.
+    """
+    placed = [camera_ids[0]]
+    remaining = list(camera_ids[1:])
+    grew = True
+    while remaining and grew:
+        grew = False
+        for b in list(remaining):
+            if any(frames[b] & frames[a] for a in placed):
+                placed.append(b)
+                remaining.remove(b)
+                grew = True
+    if remaining:
+        raise _disconnected_error(remaining, placed)
+
+
+def place_cameras(
+    camera_ids: list[str], poses: dict[str, dict[str, Pose]], say: Callable[[str], None]
+) -> tuple[dict[str, Pose], dict[str, dict]]:
+    """``cam_from_rig`` of every camera by averaged relative poses along a spanning tree.
+
+    Starting from ``camera_ids[0]`` (identity), the camera that shares the most
+    frames with an already placed camera is placed next, from the frames it
+    shares with that camera (its parent), until all are placed.
+
+    Parameters
+    ----------
+    camera_ids : list of str
+    poses : dict of str -> dict of str -> (R (3, 3), t (3,))
+        Camera id -> frame id -> adjusted ``cam_from_world`` of its image in that frame.
+    say : callable(str)
+        Progress lines.
+
+    Returns
+    -------
+    cam_from_rig : dict of str -> (R (3, 3), t (3,))
+    precision : dict of str -> dict
+        Per camera: ``parent`` (the camera it was placed from, ``None`` for the
+        reference) and the spread of its relative poses (:meth:`PoseMean.spread`).
+
+    Raises
+    ------
+    DatasetError
+        Cameras that share no frame with the placed ones (named, with what to capture).
+    """
+    ref = camera_ids[0]
+    identity = (np.eye(3), np.zeros(3))
+    cam_from_rig: dict[str, Pose] = {ref: identity}
+    precision: dict[str, dict] = {
+        ref: {"parent": None, "n_frames": len(poses[ref]), "reference": True}
+    }
+    remaining = list(camera_ids[1:])
+    while remaining:
+        best = (0, "", "")
+        for b in remaining:
+            for a in cam_from_rig:
+                n = len(poses[a].keys() & poses[b].keys())
+                if n > best[0]:
+                    best = (n, b, a)
+        n, b, a = best
+        if n == 0:
+            raise _disconnected_error(remaining, list(cam_from_rig))
+        frames = [f for f in poses[b] if f in poses[a]]
+        R_s, t_s = [], []
+        for f in frames:
+            # cam_from_rig_b = cam_from_world_b * world_from_cam_a * cam_from_rig_a
+            R, t = compose(compose(poses[b][f], inverse(poses[a][f])), cam_from_rig[a])
+            R_s.append(R)
+            t_s.append(t)
+        mean = robust_pose_mean(np.array(R_s), np.array(t_s))
+        cam_from_rig[b] = (mean.R, mean.t)
+        precision[b] = {"parent": a, "frames": frames, **mean.spread()}
+        spread = precision[b]
+        if spread["rotation_spread_deg"] is None:
+            logger.warning(
+                "camera %r: cam_from_rig rests on a single frame (%s) shared with %r: its "
+                "precision cannot be estimated; capture more frames with both cameras",
+                b,
+                frames[0],
+                a,
+            )
+            say(f"camera {b}: cam_from_rig from 1 frame shared with {a} (no spread)")
+        else:
+            say(
+                f"camera {b}: cam_from_rig from {n} frames shared with {a}: angle "
+                f"{np.degrees(rotation_angle(mean.R)):.3f} deg, |t| {np.linalg.norm(mean.t):.6g}; "
+                f"spread {spread['rotation_spread_deg']:.4f} deg, "
+                f"{spread['translation_spread_norm']:.4g} (dataset units), "
+                f"{spread['n_frames_downweighted']} frames down-weighted"
+            )
+        remaining.remove(b)
+    return cam_from_rig, precision
+
+
+def _rig_residuals(calib: Calibration, camera, R: np.ndarray, t: np.ndarray, xyz_of: dict):
+    """Raw-pixel residuals (N, 2) of a camera's observations with given poses and targets.
+
+    ``R, t`` map the camera's image ids (in ``calib.image_ids`` order) to the rig's
+    ``cam_from_world``; ``xyz_of`` maps target id -> world coordinates. NaN rows
+    where the model has no pixel for the point.
+    """
+    obs = calib.extra.get("observations", {})
+    index = {iid: k for k, iid in enumerate(calib.image_ids)}
+    ims = np.array([index[i] for i in obs.get("image", [])], int)
+    if len(ims) == 0:
+        return np.zeros((0, 2))
+    xyz = np.array([xyz_of[tg] for tg in obs["target"]], float)
+    pc = np.einsum("nij,nj->ni", R[ims], xyz) + t[ims]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        uv = camera.project(pc)
+    return np.asarray(obs["uv_px"], float) - uv
+
+
+def _rms(res: np.ndarray) -> float | None:
+    ok = np.isfinite(res).all(axis=1)
+    return float(np.sqrt(np.mean(np.sum(res[ok] ** 2, axis=1)))) if ok.any() else None
+
+
+def calibrate_rig(
+    rig: RigDataset,
+    options: CalibrationOptions | dict[str, CalibrationOptions] | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> RigCalibration:
+    """Calibrate a rig: each camera alone, then averaged ``cam_from_rig`` and ``rig_from_world``.
+
+    Not the joint rig adjustment (see the module docstring).
+
+    Parameters
+    ----------
+    rig : RigDataset
+        A validated ``dataset@2``.
+    options : CalibrationOptions or dict of str -> CalibrationOptions, optional
+        The same options for every camera, or one per camera id
+        (:func:`camera_options`); default ``CalibrationOptions()``.
+    progress : callable(str), optional
+        Receives progress lines (each camera's prefixed with ``[id]``).
+
+    Returns
+    -------
+    RigCalibration
+        Per camera the model and its statistics (``statistics["cameras"][id]``,
+        with ``cam_from_rig_precision``), ``cam_from_rig``, per frame
+        ``rig_from_world``, per image ``cam_from_world`` (rig-composed for framed
+        images), the targets (mean over the cameras of their adjusted
+        coordinates), and whole-rig statistics: ``rms_px`` (the cameras' own
+        adjustments pooled), ``rms_px_rig`` (with the rig-composed poses and mean
+        targets), ``trusted`` / ``distrust`` (naming the camera),
+        ``rig_adjustment``.
+
+    Raises
+    ------
+    DatasetError
+        Cameras that share no frame with the others (checked before any
+        calibration, and again with the images the calibrations kept); a camera
+        whose calibration fails on its input (every failing camera named, with its
+        message).
+    """
+    say = progress or (lambda _line: None)
+    ids = rig.camera_ids
+    if options is None or isinstance(options, CalibrationOptions):
+        per_camera = dict.fromkeys(ids, options or CalibrationOptions())
+    else:
+        per_camera = {cid: options.get(cid, CalibrationOptions()) for cid in ids}
+    datasets = split_rig(rig)
+    frame_of = dict(zip(rig.image_ids, rig.image_frame))
+    # before hours of work: are the cameras linked by shared frames at all?
+    check_rig_connected(
+        ids,
+        {
+            cid: {f for f, c in zip(rig.image_frame, rig.image_camera) if f and ids[c] == cid}
+            for cid in ids
+        },
+    )
+
+    calibs: dict[str, Calibration] = {}
+    failures: list[tuple[str, BaseException]] = []
+    for k, cid in enumerate(ids):
+        ds = datasets[cid]
+        say(
+            f"camera {cid} ({k + 1}/{len(ids)}): {len(ds.image_ids)} images, "
+            f"{ds.n_observations} observations, model {per_camera[cid].model}"
+        )
+
+        def prefixed(line: str, cid: str = cid) -> None:
+            say(f"[{cid}] {line}")
+
+        try:
+            calibs[cid] = calibrate(ds, per_camera[cid], prefixed)
+        except (DatasetError, ValueError) as exc:  # bad or degenerate input of this camera
+            failures.append((cid, exc))
+            say(f"camera {cid}: calibration failed: {exc}")
+    if failures:
+        lines = "; ".join(f"camera {cid!r}: {' '.join(str(e).split())}" for cid, e in failures)
+        raise DatasetError(
+            f"{len(failures)} of {len(ids)} cameras could not be calibrated, so the rig "
+            f"cannot be: {lines}"
+        ) from failures[0][1]
+
+    poses = {cid: _framed_poses(calibs[cid], frame_of) for cid in ids}
+    cam_from_rig, precision = place_cameras(ids, poses, say)
+
+    # rig_from_world per frame: robust mean over the frame's cameras
+    frame_ids = [f for f in rig.frame_ids if any(f in poses[c] for c in ids)]
+    rig_R, rig_t = [], []
+    frame_spread = []
+    for f in frame_ids:
+        samples = [compose(inverse(cam_from_rig[c]), poses[c][f]) for c in ids if f in poses[c]]
+        mean = robust_pose_mean(
+            np.array([R for R, _ in samples]), np.array([t for _, t in samples])
+        )
+        rig_R.append(mean.R)
+        rig_t.append(mean.t)
+        if len(samples) > 1:
+            frame_spread.append(mean.spread())
+    frame_index = {f: k for k, f in enumerate(frame_ids)}
+
+    # targets: mean over the cameras of their adjusted coordinates
+    sums: dict[str, np.ndarray] = {}
+    counts: dict[str, int] = {}
+    for cid in ids:
+        for tid, p in zip(calibs[cid].target_ids, calibs[cid].target_xyz):
+            sums[tid] = sums.get(tid, 0.0) + p
+            counts[tid] = counts.get(tid, 0) + 1
+    target_ids = [tid for tid in rig.target_ids if tid in sums]
+    xyz_of = {tid: sums[tid] / counts[tid] for tid in target_ids}
+
+    image_ids, image_camera, image_frame, R_all, t_all = [], [], [], [], []
+    camera_stats: dict[str, dict] = {}
+    camera_results: dict[str, dict] = {}
+    res_rig_all = []
+    for cid in ids:
+        calib = calibs[cid]
+        R_cam, t_cam = [], []
+        for iid, R, t in zip(calib.image_ids, calib.cam_from_world_R, calib.cam_from_world_t):
+            frame = frame_of.get(iid)
+            if frame is not None:
+                f = frame_index[frame]
+                R, t = compose(cam_from_rig[cid], (rig_R[f], rig_t[f]))
+            image_ids.append(iid)
+            image_camera.append(cid)
+            image_frame.append(frame)
+            R_cam.append(R)
+            t_cam.append(t)
+        R_cam, t_cam = np.array(R_cam), np.array(t_cam)
+        R_all.append(R_cam)
+        t_all.append(t_cam)
+        res_rig = _rig_residuals(calib, calib.camera, R_cam, t_cam, xyz_of)
+        res_rig_all.append(res_rig)
+        stats = dict(calib.statistics)
+        stats["model"] = calib.model
+        stats["rms_px_rig"] = _rms(res_rig)
+        stats["n_observations_rig"] = int(np.isfinite(res_rig).all(axis=1).sum())
+        stats["cam_from_rig_precision"] = precision[cid]
+        camera_stats[cid] = stats
+        camera_results[cid] = calib.extra
+
+    n_obs = np.array([calibs[c].statistics["n_observations"] for c in ids], float)
+    rms = np.array([calibs[c].statistics["rms_px"] for c in ids], float)
+    distrust = [
+        f"camera {cid!r}: {reason}"
+        for cid in ids
+        for reason in calibs[cid].statistics.get("distrust", [])
+    ]
+    statistics = {
+        "rig_adjustment": RIG_ADJUSTMENT,
+        "rms_px": float(np.sqrt(np.sum(n_obs * rms**2) / np.sum(n_obs))),
+        "rms_px_rig": _rms(np.concatenate(res_rig_all)),
+        "n_observations": int(n_obs.sum()),
+        "n_rejected": int(sum(calibs[c].statistics["n_rejected"] for c in ids)),
+        "n_cameras": len(ids),
+        "n_frames": len(frame_ids),
+        "n_images": len(image_ids),
+        "n_images_skipped": int(sum(calibs[c].statistics["n_images_skipped"] for c in ids)),
+        "converged": all(calibs[c].statistics["converged"] for c in ids),
+        "trusted": not distrust,
+        "distrust": distrust,
+        "untrusted_cameras": [c for c in ids if not calibs[c].statistics.get("trusted", True)],
+        "warnings": [
+            f"camera {c!r}: cam_from_rig rests on a single frame shared with "
+            f"{precision[c]['parent']!r}; its precision is unknown"
+            for c in ids
+            if precision[c].get("parent") is not None and precision[c]["n_frames"] < 2
+        ],
+        "frame_spread_rotation_deg_median": float(
+            np.median([s["rotation_spread_deg"] for s in frame_spread])
+        )
+        if frame_spread
+        else None,
+        "cameras": camera_stats,
+    }
+    return RigCalibration(
+        camera_ids=list(ids),
+        cameras={c: calibs[c].camera for c in ids},
+        models={c: calibs[c].model for c in ids},
+        cam_from_rig=cam_from_rig,
+        frame_ids=frame_ids,
+        rig_from_world_R=np.array(rig_R, float).reshape(-1, 3, 3),
+        rig_from_world_t=np.array(rig_t, float).reshape(-1, 3),
+        image_ids=image_ids,
+        image_camera=image_camera,
+        image_frame=image_frame,
+        cam_from_world_R=np.concatenate(R_all),
+        cam_from_world_t=np.concatenate(t_all),
+        target_ids=target_ids,
+        target_xyz=np.array([xyz_of[tid] for tid in target_ids], float).reshape(-1, 3),
+        statistics=statistics,
+        units=rig.units,
+        extra={
+            "camera_results": camera_results,
+            "skipped_images": [{"id": i, "reason": why} for i, why in rig.skipped_images],
+            "source": rig.source,
+        },
+    )
+
+
+# -- command line ------------------------------------------------------------------
+
+
+def is_rig_dataset(path) -> bool:
+    """True when the file at ``path`` is a ``dataset@2`` (rig) document.
+
+    Raises :class:`DatasetError` when it cannot be read as JSON.
+    """
+    doc = read_json(path)
+    return isinstance(doc, dict) and doc.get("format") == "gtsam-sphere/dataset@2"
+
+
+def run_cli(args, base: CalibrationOptions, progress: Callable[[str], None] | None) -> int:
+    """``gtsam-sphere calibrate RIG.json -o CALIB.json``: calibrate a rig, write ``calibration@2``.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        ``dataset``, ``output``, ``camera_model`` (list of ``ID=MODEL`` or None),
+        ``ap`` (``--ap``, None when not given).
+    base : CalibrationOptions
+        The options of every camera (``--model`` and the rest).
+    progress : callable(str) or None
+
+    Returns
+    -------
+    int
+        0 when every camera is trusted, 1 when one is not (named on standard
+        error); bad input raises :class:`DatasetError` (exit 2).
+    """
+    import sys
+
+    from .dataset import load_rig_dataset
+
+    rig = load_rig_dataset(args.dataset)
+    for iid, why in rig.skipped_images:
+        print(f"warning: image {iid!r} skipped: {why}", file=sys.stderr)
+    if rig.dropped:
+        print(
+            f"warning: {len(rig.dropped)} observations outside the image dropped",
+            file=sys.stderr,
+        )
+    models = parse_camera_models(getattr(args, "camera_model", None), rig.camera_ids)
+    options = camera_options(base, rig.camera_ids, models, getattr(args, "ap", None) is not None)
+    calib = calibrate_rig(rig, options, progress)
+    calib.save(args.output)
+    st = calib.statistics
+    print(
+        f"{args.output}: rig of {len(calib.camera_ids)} cameras, {st['n_frames']} frames "
+        f"({st['rig_adjustment']}, not yet a joint rig adjustment)"
+    )
+    print(
+        f"  RMS (px) {st['rms_px']:.4f} in the cameras' own adjustments, "
+        f"{_fmt(st['rms_px_rig'])} with the rig poses"
+    )
+    for cid in calib.camera_ids:
+        cs = st["cameras"][cid]
+        R, t = calib.cam_from_rig[cid]
+        pr = cs["cam_from_rig_precision"]
+        line = (
+            f"  camera {cid}: {cs['model']}, RMS {cs['rms_px']:.4f} px "
+            f"({_fmt(cs['rms_px_rig'])} with the rig poses), {cs['n_images']} images, "
+            f"{'trusted' if cs.get('trusted', cs['converged']) else 'NOT trusted'}"
+        )
+        if pr.get("parent") is not None:
+            line += (
+                f"; cam_from_rig angle {np.degrees(rotation_angle(R)):.4f} deg, "
+                f"|t| {np.linalg.norm(t):.6g} {calib.units} from {pr['n_frames']} frames "
+                f"shared with {pr['parent']} (spread {_fmt(pr['rotation_spread_deg'])} deg, "
+                f"{_fmt(pr['translation_spread_norm'])} {calib.units})"
+            )
+        print(line)
+    for reason in st["distrust"]:
+        print(f"warning: do not trust this result: {reason}", file=sys.stderr)
+    return 0 if st["trusted"] else 1
+
+
+def _fmt(v: float | None) -> str:
+    return "n/a" if v is None else f"{v:.4g}"
