@@ -529,61 +529,109 @@ def _pp_search(problem, images, seeds, hyp, thr_px, size, quick_images, quick_se
     return best, best_cost
 
 
-def _fit_radial(uv, p_cam, fit_principal_point: bool, pp0: np.ndarray):
-    """Robust linear fit of ``uv = pp + r(alpha) * dir`` with ``r`` an odd polynomial.
+def _radial_basis(alpha: np.ndarray) -> np.ndarray:
+    """(N, K) odd basis ``alpha0 (alpha / alpha0)^(2k+1)`` of the refit polynomial."""
+    return np.column_stack(
+        [_ALPHA0_RAD * (alpha / _ALPHA0_RAD) ** (2 * k + 1) for k in range(_N_POLY)]
+    )
 
-    Parameters
-    ----------
-    uv : (N, 2) observed pixels. p_cam : (N, 3) the targets in the camera frame.
-    fit_principal_point : estimate ``pp`` too (else keep ``pp0``).
 
-    Returns
-    -------
-    LensHypothesis ("fitted") or None when the fit is not a usable increasing mapping.
+def _hypothesis_from_poly(b: np.ndarray, pp: np.ndarray, alpha_obs: np.ndarray):
+    """The ``"fitted"`` hypothesis of ``r = basis(alpha) @ b`` (None when unusable).
+
+    Its domain ends at 1.1 times the 99.5th percentile of the observed incidences or at
+    the fold of the polynomial; None when the fold lies inside 0.9 times that range.
     """
-    s = np.hypot(p_cam[:, 0], p_cam[:, 1])
-    alpha = np.arctan2(s, p_cam[:, 2])
-    ok = (s > 1e-9) & np.isfinite(alpha) & np.all(np.isfinite(uv), axis=1)
-    if ok.sum() < 4 * (_N_POLY + 2):
+    if not np.all(np.isfinite(b)) or b[0] <= 0 or not np.all(np.isfinite(pp)):
         return None
-    uv, alpha, s, p = uv[ok], alpha[ok], s[ok], p_cam[ok]
-    d = p[:, :2] / s[:, None]
-    basis = np.column_stack([_ALPHA0_RAD * (alpha / _ALPHA0_RAD) ** (2 * k + 1)
-                             for k in range(_N_POLY)])
-    n = len(alpha)
-    blocks = [np.vstack([basis * d[:, 0:1], basis * d[:, 1:2]])]
-    if fit_principal_point:
-        e = np.zeros((2 * n, 2))
-        e[:n, 0] = 1.0
-        e[n:, 1] = 1.0
-        blocks.insert(0, e)
-    A = np.hstack(blocks)
-    b = np.concatenate([uv[:, 0], uv[:, 1]])
-    if not fit_principal_point:
-        b = b - np.concatenate([np.full(n, pp0[0]), np.full(n, pp0[1])])
-    w = np.ones(2 * n)
-    x = None
-    for _ in range(4):
-        sw = np.sqrt(w)
-        x = np.linalg.lstsq(A * sw[:, None], b * sw, rcond=None)[0]
-        res = np.abs(A @ x - b)
-        k = 2.0 * 1.4826 * max(float(np.median(res)), 1e-6)
-        w = np.where(res <= k, 1.0, k / np.maximum(res, 1e-300))
-    pp = x[:2] if fit_principal_point else pp0
-    bcoef = x[2:] if fit_principal_point else x
-    if not np.all(np.isfinite(bcoef)) or bcoef[0] <= 0 or not np.all(np.isfinite(pp)):
-        return None
-    coeffs = bcoef / bcoef[0] / _ALPHA0_RAD ** (2 * np.arange(_N_POLY))
+    coeffs = b / b[0] / _ALPHA0_RAD ** (2 * np.arange(_N_POLY))
     poly = np.zeros(2 * _N_POLY)
     poly[1::2] = coeffs
     grid = np.linspace(0.0, np.pi, 2049)
     deriv = np.polynomial.polynomial.polyval(grid, np.polynomial.polynomial.polyder(poly))
     fold = grid[np.argmax(deriv <= 0)] if np.any(deriv <= 0) else np.pi
-    a_obs = float(np.percentile(alpha, 99.5))
+    a_obs = float(np.percentile(alpha_obs, 99.5))
     if fold < 0.9 * a_obs:
         return None
     a_max = float(min(fold, 1.1 * a_obs, np.pi))
-    return LensHypothesis("fitted", float(bcoef[0]), np.asarray(pp, float), coeffs, a_max)
+    return LensHypothesis("fitted", float(b[0]), np.asarray(pp, float), coeffs, a_max)
+
+
+def _joint_refine(problem, images, hyp, rot, trans, mask, thr_px):
+    """Joint robust least squares of the principal point, an odd radial polynomial and
+    the poses of ``images`` on their ``mask``ed observations (pixel residuals, soft-L1
+    loss with scale ``thr_px``).
+
+    A principal point error is mostly absorbed by the poses (a rotation), so the
+    intrinsics and the poses must move together; ``scipy.optimize.least_squares`` with
+    the block sparsity of the problem does that in a few dozen cheap evaluations.
+
+    Returns ``(hypothesis, rot, trans)`` or None when the fit is unusable.
+    """
+    from scipy.optimize import least_squares
+
+    from .p3p import _so3_exp
+
+    posed = [i for i in images if np.all(np.isfinite(rot[i]))]
+    rows = [problem.obs_of_image[i][mask[problem.obs_of_image[i]]] for i in posed]
+    keep = [k for k, r in enumerate(rows) if r.size >= 4]
+    posed = [posed[k] for k in keep]
+    rows = [rows[k] for k in keep]
+    n_obs = sum(r.size for r in rows)
+    if len(posed) < 2 or n_obs < 6 * (_N_POLY + 2):
+        return None
+    uv = np.concatenate([problem.uv[r] for r in rows])
+    pts = np.concatenate([problem.points[r] for r in rows])
+    owner = np.concatenate([np.full(r.size, k) for k, r in enumerate(rows)])
+    R0 = np.stack([rot[i] for i in posed])
+    t0 = np.stack([trans[i] for i in posed])
+    p0 = np.einsum("nij,nj->ni", R0[owner], pts) + t0[owner]
+    alpha0 = np.arctan2(np.hypot(p0[:, 0], p0[:, 1]), p0[:, 2])
+    grid = np.linspace(0.0, float(np.max(alpha0)), 64)[1:]
+    r_grid = hyp.radius_px(grid)
+    ok = np.isfinite(r_grid)
+    if ok.sum() < _N_POLY + 2:
+        return None
+    b0 = np.linalg.lstsq(_radial_basis(grid[ok]), r_grid[ok], rcond=None)[0]
+    n_cam = len(posed)
+    x0 = np.concatenate([hyp.principal_point_px, b0, np.zeros(6 * n_cam)])
+
+    def poses(x):
+        d = x[2 + _N_POLY :].reshape(n_cam, 6)
+        return np.stack([_so3_exp(w) @ r for w, r in zip(d[:, :3], R0)]), t0 + d[:, 3:]
+
+    def residuals(x):
+        R, t = poses(x)
+        p = np.einsum("nij,nj->ni", R[owner], pts) + t[owner]
+        s = np.hypot(p[:, 0], p[:, 1])
+        alpha = np.arctan2(s, p[:, 2])
+        r = _radial_basis(alpha) @ x[2 : 2 + _N_POLY]
+        scale = r / np.maximum(s, 1e-12)
+        res = x[:2] + scale[:, None] * p[:, :2] - uv
+        return np.nan_to_num(res, nan=1e6).ravel()
+
+    sparsity = np.zeros((2 * n_obs, x0.size), bool)
+    sparsity[:, : 2 + _N_POLY] = True
+    for k in range(n_cam):
+        obs_rows = np.flatnonzero(owner == k)
+        cols = 2 + _N_POLY + 6 * k + np.arange(6)
+        sparsity[np.concatenate([2 * obs_rows, 2 * obs_rows + 1])[:, None], cols] = True
+    try:
+        sol = least_squares(
+            residuals, x0, jac_sparsity=sparsity, loss="soft_l1", f_scale=thr_px,
+            x_scale="jac", max_nfev=40, method="trf",
+        )
+    except (ValueError, np.linalg.LinAlgError):
+        return None
+    new = _hypothesis_from_poly(sol.x[2 : 2 + _N_POLY], sol.x[:2], alpha0)
+    if new is None:
+        return None
+    R, t = poses(sol.x)
+    rot, trans = rot.copy(), trans.copy()
+    for k, i in enumerate(posed):
+        u, _, vt = np.linalg.svd(R[k])
+        rot[i], trans[i] = u @ vt, t[k]
+    return new, rot, trans
 
 
 def _check_inputs(uv_px, obs_image, obs_target, target_xyz, width, height, n_images):
@@ -853,25 +901,12 @@ def _pose_all(problem, images, lens, thr, seeds, min_inliers):
     return rot, trans, ok, inlier_mask, fails, lens
 
 
-def _inlier_geometry(problem, images, rot, trans, mask):
-    """(uv (K, 2), p_cam (K, 3)) of the inlier observations of ``images``."""
-    uvs, pcs = [], []
-    for i in images:
-        if not np.all(np.isfinite(rot[i])):
-            continue
-        idx = problem.obs_of_image[i]
-        idx = idx[mask[idx]]
-        uvs.append(problem.uv[idx])
-        pcs.append(problem.points[idx] @ rot[i].T + trans[i])
-    if not uvs:
-        return np.zeros((0, 2)), np.zeros((0, 3))
-    return np.concatenate(uvs), np.concatenate(pcs)
-
-
 def _refit(problem, images, seeds, hyp, thr, cost, say):
-    """Alternate poses and a linear radial refit on ``images`` while the cost drops."""
+    """Poses of ``images`` by RANSAC, then the joint refinement of the principal point,
+    the radial polynomial and the poses (:func:`_joint_refine`); repeated while the
+    pixel cost (RANSAC poses again) drops by 2 %."""
     best, best_cost = hyp, cost
-    for _ in range(3):
+    for _ in range(2):
         n = problem.counts.size
         rot = np.full((n, 3, 3), np.nan)
         trans = np.full((n, 3), np.nan)
@@ -880,11 +915,11 @@ def _refit(problem, images, seeds, hyp, thr, cost, say):
             res, _, err = problem.run(i, best, thr, s, 300, 4, True)
             if np.all(np.isfinite(res.R)):
                 rot[i], trans[i] = res.R, res.t
-                mask[problem.scored_of_image[i]] = err < 2.0 * thr
-        uv, pc = _inlier_geometry(problem, images, rot, trans, mask)
-        new = _fit_radial(uv, pc, True, best.principal_point_px)
-        if new is None:
+                mask[problem.scored_of_image[i]] = err < 3.0 * thr
+        refined = _joint_refine(problem, images, best, rot, trans, mask, thr)
+        if refined is None:
             break
+        new = refined[0]
         c_new = problem.cost(images, seeds, new, thr, 300, True)
         if c_new >= 0.98 * best_cost:
             break
@@ -895,19 +930,19 @@ def _refit(problem, images, seeds, hyp, thr, cost, say):
 
 
 def _final_refit(problem, images, lens, thr, seeds, min_inliers, posed, say):
-    """Radial refits over every posed image (up to 3), kept while they explain at least
-    0.5 % more observations (the principal point and the poses' rotations trade off, so
-    a principal point off the image centre needs more than one round)."""
+    """Joint refinements over every posed image (up to 3), kept while they explain at
+    least 0.5 % more observations once every image is posed again by RANSAC."""
     for _ in range(3):
         rot, trans, ok, mask, _, lens = posed
-        uv, pc = _inlier_geometry(problem, images, rot, trans, mask)
-        new = _fit_radial(uv, pc, True, lens.principal_point_px)
-        if new is None:
+        problem.all_observations = True
+        refined = _joint_refine(problem, images, lens, rot, trans, mask, thr)
+        problem.all_observations = False
+        if refined is None:
             break
-        again = _pose_all(problem, images, new, thr, seeds, min_inliers)
+        again = _pose_all(problem, images, refined[0], thr, seeds, min_inliers)
         if again[3].sum() <= mask.sum():
             break
-        say(f"refit on all images: {new.describe()}, {int(again[3].sum())} consistent")
+        say(f"refit on all images: {refined[0].describe()}, {int(again[3].sum())} consistent")
         gained = again[3].sum() - mask.sum()
         posed = again
         if gained < 0.005 * mask.size:
