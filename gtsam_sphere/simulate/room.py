@@ -7,9 +7,16 @@ floor, ceiling and four walls; camera stations stand inside the room at
 least ``wall_clearance_m`` from every wall, look in varied headings and
 tilts, and alternate landscape (roll 0) and portrait (roll 90 degrees).
 
+The same pipeline simulates a planar board or a cube corner seen from
+outside (``scene="board"`` / ``"object3d"``, geometry and pose sampling in
+:mod:`gtsam_sphere.simulate.scenes`): only the targets and the pose sampler
+differ, observation, noise, blunders, the check points and the three
+documents are shared.
+
 A target is observed in an image when the lens can image it, its pixel lies
-at least ``margin_px`` inside the image, it is at least ``min_range_m`` away
-and it faces the camera (``normal . view_direction < -facing_cos``). Poses
+at least ``margin_px`` inside the image (whatever the principal point), its
+incidence angle is at most ``fov_deg / 2``, it is at least ``min_range_m``
+away and it faces the camera (``normal . view_direction < -facing_cos``). Poses
 are redrawn until every image sees at least ``min_targets_per_image``
 targets (and preferably ``preferred_targets_per_image``), so no image is
 dropped. Pixels then get Gaussian noise
@@ -42,6 +49,7 @@ from .scenes import (
     board_view_dir,
     corner_view_dir,
     field_half_angle_rad,
+    inside_image,
     object3d_targets,
 )
 
@@ -374,14 +382,8 @@ def _observe(lens, options, R, t, centre, xyz, normals):
     facing = np.sum(normals * view, axis=1) / np.maximum(dist, 1e-12) < -options.facing_cos
     uv = lens.project(p_cam)
     alpha = np.degrees(np.arctan2(np.hypot(p_cam[:, 0], p_cam[:, 1]), p_cam[:, 2]))
-    m = options.margin_px
-    inside = (
-        np.isfinite(uv).all(axis=1)
-        & (uv[:, 0] >= -0.5 + m)
-        & (uv[:, 0] <= options.width - 0.5 - m)
-        & (uv[:, 1] >= -0.5 + m)
-        & (uv[:, 1] <= options.height - 0.5 - m)
-        & (alpha <= options.fov_deg / 2.0 + 1e-9)
+    inside = inside_image(uv, options.width, options.height, options.margin_px) & (
+        alpha <= options.fov_deg / 2.0 + 1e-9
     )
     keep = np.flatnonzero(facing & inside & (dist >= options.effective_min_range_m))
     return keep, uv[keep], alpha[keep]

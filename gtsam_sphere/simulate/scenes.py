@@ -37,6 +37,7 @@ __all__ = [
     "board_view_dir",
     "corner_view_dir",
     "field_half_angle_rad",
+    "inside_image",
     "object3d_targets",
 ]
 
@@ -102,6 +103,32 @@ def object3d_targets(n: int, spacing_m: float):
     return xyz, normals, labels
 
 
+def inside_image(uv_px: np.ndarray, width: int, height: int, margin_px: float) -> np.ndarray:
+    """Which pixels lie at least ``margin_px`` inside the image.
+
+    Parameters
+    ----------
+    uv_px : ndarray, shape (N, 2)
+        Pixels (``(0, 0)`` = centre of the top-left pixel); NaN rows are outside.
+    width, height : int
+        Image size (pixels).
+    margin_px : float
+        Required distance from the image border (pixels).
+
+    Returns
+    -------
+    inside : ndarray of bool, shape (N,)
+    """
+    with np.errstate(invalid="ignore"):
+        return (
+            np.isfinite(uv_px).all(axis=1)
+            & (uv_px[:, 0] >= -0.5 + margin_px)
+            & (uv_px[:, 0] <= width - 0.5 - margin_px)
+            & (uv_px[:, 1] >= -0.5 + margin_px)
+            & (uv_px[:, 1] <= height - 0.5 - margin_px)
+        )
+
+
 def _base_lens(lens: Any) -> Any:
     while hasattr(lens, "lens"):
         lens = lens.lens
@@ -115,17 +142,18 @@ def _unproject_any_hemisphere(lens: Any, uv: np.ndarray, back: np.ndarray) -> np
     return lens.unproject(uv)
 
 
-def _usable_pixels(lens: Any, uv: np.ndarray, back: np.ndarray, half_fov: float, margin: float,
-                   width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+def _usable_pixels(
+    lens: Any,
+    uv: np.ndarray,
+    back: np.ndarray,
+    half_fov: float,
+    margin: float,
+    width: int,
+    height: int,
+) -> tuple[np.ndarray, np.ndarray]:
     rays = _unproject_any_hemisphere(lens, uv, back)
     alpha = np.arctan2(np.hypot(rays[:, 0], rays[:, 1]), rays[:, 2])
-    inside = (
-        (uv[:, 0] >= -0.5 + margin)
-        & (uv[:, 0] <= width - 0.5 - margin)
-        & (uv[:, 1] >= -0.5 + margin)
-        & (uv[:, 1] <= height - 0.5 - margin)
-    )
-    ok = np.isfinite(alpha) & (alpha <= half_fov) & inside
+    ok = np.isfinite(alpha) & (alpha <= half_fov) & inside_image(uv, width, height, margin)
     return ok, rays
 
 
@@ -168,7 +196,6 @@ def field_half_angle_rad(lens: Any, fov_deg: float, width: int, height: int, mar
     alpha = np.arctan2(np.hypot(rays[:, 0], rays[:, 1]), rays[:, 2])
     alpha = np.where(np.isfinite(alpha), alpha, half)
     return float(min(half, alpha.max()))
-
 
 
 def _frame(vec: np.ndarray) -> np.ndarray:
