@@ -11,9 +11,11 @@ World frames (metres):
   ``(i + 1) * spacing`` (none on the shared edges).
 
 Poses aim the object at a chosen place of the image so that a set of images
-covers the whole field (:class:`AimedPoses`): a pixel is drawn uniformly over
-the part of the image the lens images (inside the image margin, at most
-``fov / 2`` incidence) and unprojected; the camera stands on a viewing
+covers the whole field (:class:`AimedPoses`): a pixel is drawn over the part
+of the image the lens images (inside the image margin, at most ``fov / 2``
+incidence), for half of the images uniformly over that area, for the other
+half uniformly in the distance from the principal point (central views as
+frequent as peripheral ones), and unprojected; the camera stands on a viewing
 direction ``v`` on the object's front side, at the distance where the object
 subtends a half angle ``beta`` (about 40% of the largest incidence the image
 shows, 8-35 degrees), and is rotated so that the object's centre lands on the
@@ -268,7 +270,18 @@ class AimedPoses:
     margin_px: float
 
     def _ray(self, rng: np.random.Generator) -> np.ndarray:
-        """A ray drawn uniformly over the usable image area (camera frame, unit)."""
+        """A ray through a usable pixel (camera frame, unit).
+
+        Half of the draws are uniform over the usable image area (the
+        periphery and the corners), half uniform in the distance from the
+        principal point: candidates uniform over the image are then kept with
+        probability ``r0 / max(r, r0)`` (``r`` their distance from the
+        principal point, ``r0`` 5% of the short side), so central views are
+        as frequent as peripheral ones.
+        """
+        by_radius = rng.uniform() < 0.5
+        r0 = 0.05 * min(self.width, self.height)
+        pp = np.array([self.lens.cx, self.lens.cy])
         for _ in range(100):
             uv = np.stack(
                 [
@@ -278,9 +291,12 @@ class AimedPoses:
                 axis=1,
             )
             back = rng.uniform(size=64) < 0.5
+            keep = rng.uniform(size=64) * np.maximum(np.linalg.norm(uv - pp, axis=1), r0) < r0
+            keep |= not by_radius
             ok, rays = _usable_pixels(
                 self.lens, uv, back, self.half_fov_rad, self.margin_px, self.width, self.height
             )
+            ok &= keep
             if ok.any():
                 return rays[int(np.flatnonzero(ok)[0])]
         return np.array([0.0, 0.0, 1.0])
