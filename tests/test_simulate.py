@@ -378,3 +378,27 @@ def test_cli_scene_circle_and_principal_point(tmp_path, capsys):
     _check_dataset(json.loads((tmp_path / "b" / "dataset.json").read_text()))
     bad = parser.parse_args(["--lens-option", "xi", "-o", str(tmp_path / "c")])
     assert run_cli(bad) == 2
+
+
+def test_offset_principal_point_with_filled_diagonal_caps_incidence_at_half_fov():
+    # fov/2 lands on the half diagonal from the principal point; moved by 10%, the far
+    # corner would show more than fov/2 without the visibility cap
+    w, h, fov = 1600, 1200, 120.0
+    cx, cy = (w - 1) / 2 + 0.1 * w, (h - 1) / 2 + 0.1 * h
+    opts = SimulationOptions(
+        lens="equidistant",
+        fov_deg=fov,
+        width=w,
+        height=h,
+        fill="diagonal",
+        lens_options={"cx": cx, "cy": cy},
+        noise_px=0.0,
+        n_images=16,
+    )
+    sim = simulate_room(opts)
+    assert sim.lens.max_incidence_deg > fov / 2  # the lens itself would see further
+    p_cam, uv, _, _ = _observed_geometry(sim)
+    alpha = np.degrees(np.arctan2(np.hypot(p_cam[:, 0], p_cam[:, 1]), p_cam[:, 2]))
+    assert fov / 2 - 3.0 < alpha.max() <= fov / 2 + 1e-9
+    # the far corner (top left) is not reached, the near ones are
+    assert np.hypot(uv[:, 0] - cx, uv[:, 1] - cy).max() <= math.hypot(w, h) / 2 + 1e-6
