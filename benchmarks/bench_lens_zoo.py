@@ -104,7 +104,37 @@ def _family_options(family: str, fov: float) -> dict[str, float]:
 
 @dataclass
 class Case:
-    """One benchmark case (everything needed to rebuild its simulation)."""
+    """One benchmark case (everything needed to rebuild its simulation).
+
+    Attributes
+    ----------
+    id : str
+        ``NN-family-fov-scene-circle[-imp]``; ``rXs`` / ``rXd``: circle radius X times
+        the short side / the half diagonal, ``diag``: the diagonal filled, ``imp``:
+        non-central pupil and error field.
+    family : str
+        Lens kind (:data:`gtsam_sphere.simulate.LENS_KINDS`).
+    fov_deg : float
+        Full field of view (degrees).
+    width, height : int
+        Image size (pixels).
+    circle : float or None
+        Circle radius as a fraction of the short side (< 1) or of the half
+        diagonal (>= 1); None fills the diagonal.
+    pp_offset : tuple of float
+        Principal point offset from the image centre, fractions of width, height.
+    scene : str
+        ``"room"``, ``"board"`` or ``"object3d"``.
+    n_images : int
+    pupil_shift_m : float
+        Entrance pupil shift at 90 degrees (metres).
+    error_field_px : float
+        Smooth error field amplitude (pixels).
+    seed : int
+        Simulation seed.
+    lens_options : dict
+        Family shape parameters (``k1``, ``xi``, ``alpha``, ``omega``, ...).
+    """
 
     id: str
     family: str
@@ -209,7 +239,18 @@ def build_cases(seed: int = 0) -> list[Case]:
 
 
 def quick_cases(cases: list[Case]) -> list[Case]:
-    """The ``--quick`` subset: the cases of the (family, fov) pairs in :data:`QUICK`."""
+    """The ``--quick`` subset: the cases of the (family, fov) pairs in :data:`QUICK`.
+
+    Parameters
+    ----------
+    cases : list of Case
+        From :func:`build_cases`.
+
+    Returns
+    -------
+    subset : list of Case
+        Eight cases over every scene and several circles (a few minutes in all).
+    """
     return [c for c in cases if (c.family, c.fov_deg) in QUICK]
 
 
@@ -262,7 +303,27 @@ def _axis_scale_px(lens) -> float:
 
 
 def run_case(case: Case, workdir: Path, verbose: bool = False) -> dict:
-    """Simulate, calibrate with the defaults and with the oracle; one row of the table."""
+    """Simulate, calibrate with the defaults and with the oracle; one row of the table.
+
+    Parameters
+    ----------
+    case : Case
+    workdir : pathlib.Path
+        The simulated files and the calibration go to ``workdir / case.id``.
+    verbose : bool
+        Echo the calibration's progress lines on standard error.
+
+    Returns
+    -------
+    row : dict
+        ``success`` (the CLI's exit 0), ``n_obs``, ``rmse_3d_m`` and
+        ``oracle_rmse_3d_m`` (metres, of ``metric``: ``"checkpoints"`` or
+        ``"stations"``), ``ratio``, ``time_s`` (default calibration only),
+        ``time_per_1k_obs_s``, ``hypothesis``, ``pp_error_px``,
+        ``c_error_pct`` (principal distance against the true lens's image
+        radius per radian at the axis), ``distrust``; ``error`` /
+        ``oracle_error`` (``"Type: message"``) when something raised.
+    """
     from gtsam_sphere.simulate import simulate_room, write_simulation
     from gtsam_sphere.simulate.oracle import oracle_calibration
 
@@ -336,7 +397,13 @@ def _fmt(value, spec: str, missing: str = "-") -> str:
 
 
 def print_table(rows: list[dict]) -> None:
-    """Markdown table of the rows and the summary lines (stdout)."""
+    """Print the Markdown table of the rows, the failures and the summary lines.
+
+    Parameters
+    ----------
+    rows : list of dict
+        From :func:`run_case`.
+    """
     print(
         "| case | family | fov | r/short | pp % | scene | n_obs | ok | 3D mm (of) | oracle mm "
         "| ratio | time s | s/1k obs | hypothesis | dpp px | dc % |"
@@ -371,7 +438,17 @@ def print_table(rows: list[dict]) -> None:
 
 
 def summary_lines(rows: list[dict]) -> list[str]:
-    """Success rate, worst ratio to the oracle, median and worst time per 1000 observations."""
+    """Success rate, worst ratio to the oracle, median and worst time per 1000 observations.
+
+    Parameters
+    ----------
+    rows : list of dict
+        From :func:`run_case`.
+
+    Returns
+    -------
+    lines : list of str
+    """
     if not rows:
         return ["no cases"]
     n_ok = sum(r["success"] for r in rows)
@@ -392,7 +469,18 @@ def summary_lines(rows: list[dict]) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Run (or list) the lens zoo."""
+    """Run (or list) the lens zoo.
+
+    Parameters
+    ----------
+    argv : list of str, optional
+        Command-line arguments; default ``sys.argv[1:]``.
+
+    Returns
+    -------
+    status : int
+        0 (failed cases are rows of the table, not an exit status).
+    """
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seed", type=int, default=0, help="seed of the case list (default 0)")
     ap.add_argument("--quick", action="store_true", help=f"only {len(QUICK)} diverse cases")

@@ -402,3 +402,30 @@ def test_offset_principal_point_with_filled_diagonal_caps_incidence_at_half_fov(
     assert fov / 2 - 3.0 < alpha.max() <= fov / 2 + 1e-9
     # the far corner (top left) is not reached, the near ones are
     assert np.hypot(uv[:, 0] - cx, uv[:, 1] - cy).max() <= math.hypot(w, h) / 2 + 1e-6
+
+
+def test_lens_zoo_case_list_builds(monkeypatch):
+    import importlib.util
+    import sys
+    from pathlib import Path
+
+    from gtsam_sphere.simulate import build_lens
+
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_lens_zoo.py"
+    spec = importlib.util.spec_from_file_location("bench_lens_zoo", path)
+    zoo = importlib.util.module_from_spec(spec)
+    monkeypatch.setitem(sys.modules, "bench_lens_zoo", zoo)  # its dataclass needs the module
+    spec.loader.exec_module(zoo)
+    cases = zoo.build_cases(0)
+    assert len(cases) >= 60 and len({c.id for c in cases}) == len(cases)
+    assert [c.id for c in zoo.build_cases(0)] == [c.id for c in cases]
+    assert {c.scene for c in cases} == {"room", "board", "object3d"}
+    assert len({c.family for c in cases}) == 9
+    assert min(c.fov_deg for c in cases) <= 60 and max(c.fov_deg for c in cases) == 360
+    assert {0.25, 1.3} <= {c.circle for c in cases}
+    assert max(max(abs(v) for v in c.pp_offset) for c in cases) == pytest.approx(0.1)
+    assert any(c.pupil_shift_m and c.error_field_px for c in cases)
+    for c in cases:  # every family reaches the field of view it is given
+        build_lens(c.options())
+    quick = zoo.quick_cases(cases)
+    assert 6 <= len(quick) <= 10 and {c.scene for c in quick} == {"room", "board", "object3d"}

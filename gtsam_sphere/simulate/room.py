@@ -589,6 +589,7 @@ def _assemble(options, lens, scene: _Scene, images, rng) -> Simulation:
         "units": "m",
         "camera": {"width": int(options.width), "height": int(options.height)},
         "scene": options.scene,
+        "sigma_mode": sigma_mode,
         "lens": lens.to_dict(),
         "options": _jsonable(asdict(options)),
         "targets": [
