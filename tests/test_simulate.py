@@ -406,6 +406,7 @@ def test_offset_principal_point_with_filled_diagonal_caps_incidence_at_half_fov(
 
 def test_lens_zoo_case_list_builds(monkeypatch):
     import importlib.util
+    import os
     import sys
     from pathlib import Path
 
@@ -415,6 +416,9 @@ def test_lens_zoo_case_list_builds(monkeypatch):
     spec = importlib.util.spec_from_file_location("bench_lens_zoo", path)
     zoo = importlib.util.module_from_spec(spec)
     monkeypatch.setitem(sys.modules, "bench_lens_zoo", zoo)  # its dataclass needs the module
+    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        # the script pins its threads with os.environ.setdefault: restored after the test
+        monkeypatch.setenv(var, os.environ.get(var, "1"))
     spec.loader.exec_module(zoo)
     cases = zoo.build_cases(0)
     assert len(cases) >= 60 and len({c.id for c in cases}) == len(cases)
