@@ -74,7 +74,7 @@ TRUTH_FORMAT = "gtsam-sphere/truth@1"
 
 @dataclass
 class SimulationOptions:
-    """Everything that defines a simulated room calibration.
+    """Everything that defines a simulated calibration (room, board or 3D object).
 
     Attributes
     ----------
