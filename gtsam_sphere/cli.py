@@ -299,7 +299,7 @@ def build_parser() -> argparse.ArgumentParser:
     for name, module, help_text in (
         ("compare", compare, "the paper's Table 1/2 rows on one dataset"),
         ("report", report, "plots and a page for a calibration"),
-        ("simulate", simulate, "simulate the paper's room experiment"),
+        ("simulate", simulate, "simulate a calibration: the paper's room, a board, a 3D object"),
         ("detect", detect, "detect board corners / markers in images"),
         ("export", export, "fit OpenCV / Kalibr camera models to a calibration"),
         ("undistort", undistort, "resample an image to a perspective / panoramic projection"),

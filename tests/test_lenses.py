@@ -9,7 +9,9 @@ import pytest
 
 from gtsam_sphere.simulate.lenses import (
     LENS_KINDS,
+    DoubleSphere,
     ErrorField,
+    FieldOfView,
     NonCentral,
     PinholeBrown,
     SphereLens,
@@ -35,7 +37,18 @@ CASES = [
     ("kannala-brandt", 220.0, {"k1": -0.01, "k2": 0.001}),
     ("unified", 160.0, {"xi": 0.8, "k1": -0.05, "k2": 0.01, "p1": 1e-4, "p2": 1e-4}),
     ("unified", 250.0, {"xi": 1.6}),
+    ("double-sphere", 150.0, {"xi": -0.2, "alpha": 0.6, "p1": 2e-4, "a1": 1e-4}),
+    ("double-sphere", 240.0, {}),
+    ("double-sphere", 330.0, {"xi": 0.1, "alpha": 0.5}),
+    ("double-sphere", 170.0, {"xi": 0.3, "alpha": 0.3}),
+    ("fov", 100.0, {"omega": 1.0, "p2": 1e-4}),
+    ("fov", 170.0, {"omega": 0.5}),
+    ("fov", 300.0, {"omega": 2.2, "a2": 1e-4}),
 ]
+
+
+def _without_decentering(opts: dict) -> dict:
+    return {k: v for k, v in opts.items() if k not in ("p1", "p2", "a1", "a2")}
 
 
 def _directions(alpha: np.ndarray, seed: int = 0) -> np.ndarray:
@@ -88,7 +101,7 @@ def test_fov_on_border(kind, fov, opts):
         return
     radius = min(W, H) / 2 if fov >= 180 else math.hypot(W, H) / 2
     # along the axis where decentering/affinity vanish for the ideal lens
-    ideal = make_lens(kind, fov, W, H, **{k: v for k, v in opts.items() if k[0] not in "pa"})
+    ideal = make_lens(kind, fov, W, H, **_without_decentering(opts))
     uv = ideal.project(_directions(np.array([half, half]), seed=3))
     r = np.hypot(uv[:, 0] - ideal.cx, uv[:, 1] - ideal.cy)
     assert r == pytest.approx([radius, radius], rel=1e-9)
@@ -220,3 +233,128 @@ def test_to_dict_round_trip():
 def test_incidence_angle():
     a = incidence_angle([[0, 0, 1.0], [1, 0, 0.0], [0, 0, -2.0], [0, 1, -1.0]])
     assert a == pytest.approx([0, math.pi / 2, math.pi, 0.75 * math.pi])
+
+
+# -- double sphere and FOV (field-of-view) lenses ------------------------------------
+
+
+def _paper_double_sphere(p: np.ndarray, fx: float, cx: float, cy: float, xi: float, a: float):
+    """Usenko et al. 2018, Eq. 40-45 for points of any distance (fx = fy, no distortion)."""
+    x, y, z = p.T
+    d1 = np.linalg.norm(p, axis=1)
+    d2 = np.sqrt(x * x + y * y + (xi * d1 + z) ** 2)
+    den = a * d2 + (1.0 - a) * (xi * d1 + z)
+    return np.stack([fx * x / den + cx, fx * y / den + cy], axis=1)
+
+
+def test_double_sphere_is_the_papers_model_and_validity_bound():
+    lens = make_lens("double-sphere", 200.0, W, H, xi=-0.25, alpha=0.62, cx=2100.0, cy=1400.0)
+    pts = _directions(np.radians(np.linspace(0.0, 99.0, 60)), seed=7)
+    pts = pts * np.random.default_rng(2).uniform(0.2, 40.0, (60, 1))  # distance is irrelevant
+    ref = _paper_double_sphere(pts, lens.f, lens.cx, lens.cy, lens.xi, lens.alpha)
+    assert np.abs(lens.project(pts) - ref).max() < 1e-8
+    # the paper's validity: z > -w2 |p| with w1 = (1 - alpha) / alpha for alpha > 1/2
+    w1 = (1 - 0.62) / 0.62
+    w2 = (w1 - 0.25) / math.sqrt(2 * w1 * -0.25 + 0.25**2 + 1)
+    free = DoubleSphere(cx=0.0, cy=0.0, f=1.0, xi=-0.25, alpha=0.62)
+    assert free.max_incidence_deg == pytest.approx(math.degrees(math.acos(-w2)), abs=0.05)
+    # alpha = 1/2, xi = 0 sees (almost) the whole sphere
+    assert DoubleSphere(0.0, 0.0, 1.0, xi=0.0, alpha=0.5).max_incidence_deg > 179.9
+    with pytest.raises(ValueError, match="alpha"):
+        DoubleSphere(0.0, 0.0, 1.0, alpha=1.0)
+
+
+def test_fov_model_is_devernay_faugeras_below_90_deg():
+    omega = 1.3
+    lens = make_lens("fov", 150.0, W, H, omega=omega)
+    pts = _directions(np.radians(np.linspace(0.5, 89.5, 50)), seed=8) * 3.0
+    r_u = np.hypot(pts[:, 0], pts[:, 1]) / pts[:, 2]  # pinhole radius
+    r_d = np.arctan(2.0 * r_u * math.tan(omega / 2)) / omega
+    uv = lens.project(pts)
+    r = np.hypot(uv[:, 0] - lens.cx, uv[:, 1] - lens.cy) / lens.f
+    assert np.abs(r - r_d).max() < 1e-12
+    # past 90 degrees the incidence form continues smoothly: pi / (2 omega) at 90 degrees
+    edge = lens.project([[1.0, 0.0, 0.0]])[0]
+    assert (edge[0] - lens.cx) / lens.f == pytest.approx(math.pi / (2 * omega))
+    with pytest.raises(ValueError, match="omega"):
+        FieldOfView(0.0, 0.0, 1.0, omega=math.pi)
+
+
+@pytest.mark.parametrize(
+    ("kind", "fov", "opts"), [c for c in CASES if c[0] in ("double-sphere", "fov")]
+)
+def test_new_lenses_monotonic_and_edges(kind, fov, opts):
+    lens = make_lens(kind, fov, W, H, fill="circle", **opts)
+    half = fov / 2
+    assert lens.max_incidence_deg == pytest.approx(half)  # a circular image sees fov / 2
+    alpha = np.linspace(0.0, math.radians(half), 2000)
+    ideal = make_lens(kind, fov, W, H, fill="circle", **_without_decentering(opts))
+    uv = ideal.project(np.stack([np.sin(alpha), 0 * alpha, np.cos(alpha)], axis=1))
+    assert np.isfinite(uv).all() and np.all(np.diff(uv[:, 0]) > 0)  # radius increases
+    # the optical axis is the principal point, in both directions
+    assert lens.project([[0.0, 0.0, 5.0]])[0] == pytest.approx([lens.cx, lens.cy])
+    assert lens.unproject([[lens.cx, lens.cy]])[0] == pytest.approx([0.0, 0.0, 1.0])
+    # 90 degrees is an ordinary point when the field reaches it
+    if half >= 90.0:
+        side = lens.unproject(lens.project([[0.0, 1.0, 0.0]]))[0]
+        assert side == pytest.approx([0.0, 1.0, 0.0], abs=1e-9)
+    # beyond the field: NaN both ways
+    beyond = math.radians(half + 1.0)
+    if beyond < math.pi:
+        assert np.isnan(lens.project([[math.sin(beyond), 0.0, math.cos(beyond)]])).all()
+    r_edge = ideal.project([[math.sin(math.radians(half)), 0.0, math.cos(math.radians(half))]])
+    far = [[lens.cx + 1.05 * (r_edge[0, 0] - ideal.cx), lens.cy]]
+    assert np.isnan(lens.unproject(far)).all()
+
+
+def test_double_sphere_cannot_reach_past_its_validity():
+    assert make_lens("double-sphere", 240.0, W, H).max_incidence_deg == pytest.approx(120.0)
+    with pytest.raises(ValueError, match="double-sphere"):
+        make_lens("double-sphere", 250.0, W, H)  # xi = -0.2, alpha = 0.6: 244 degrees
+    with pytest.raises(ValueError, match="bogus"):
+        make_lens("fov", 120.0, W, H, bogus=1.0)
+
+
+def test_new_lenses_to_dict_round_trip():
+    for lens in (
+        make_lens("double-sphere", 220.0, W, H, xi=-0.1, alpha=0.57, p1=1e-4, cx=2050.0),
+        make_lens("fov", 200.0, W, H, omega=1.7, cy=1600.0),
+    ):
+        again = lens_from_dict(lens.to_dict())
+        assert again == lens
+        pts = _directions(np.radians([0.0, 45.0, 99.0]))
+        assert np.array_equal(again.project(pts), lens.project(pts))
+
+
+# -- image circle size and principal point -------------------------------------------
+
+
+@pytest.mark.parametrize("kind", ["equidistant", "double-sphere", "fov", "pinhole", "sphere"])
+@pytest.mark.parametrize(
+    ("fov", "radius", "pp"),
+    [
+        (100.0, 0.25 * min(W, H), (0.0, 0.0)),
+        (170.0, 1.3 * math.hypot(W, H) / 2, (0.1 * W, -0.1 * H)),
+        (150.0, 1000.0, (-0.07 * W, 0.05 * H)),
+    ],
+)
+def test_circle_radius_and_principal_point_honoured(kind, fov, radius, pp):
+    if kind == "pinhole" and fov > 160:
+        fov = 160.0
+    cx, cy = (W - 1) / 2 + pp[0], (H - 1) / 2 + pp[1]
+    lens = make_lens(kind, fov, W, H, circle_radius_px=radius, cx=cx, cy=cy)
+    assert (lens.cx, lens.cy) == (cx, cy)
+    assert lens.max_incidence_deg == pytest.approx(fov / 2)
+    half = math.radians(fov / 2)
+    uv = lens.project(_directions(np.array([half, half, half]), seed=9))
+    assert np.hypot(uv[:, 0] - cx, uv[:, 1] - cy) == pytest.approx([radius] * 3, rel=1e-9)
+    # circle_radius_px overrides fill
+    same = make_lens(kind, fov, W, H, fill="diagonal", circle_radius_px=radius, cx=cx, cy=cy)
+    assert same == lens
+
+
+def test_circle_radius_for_sphere_past_180_is_the_disc():
+    lens = make_lens("sphere", 250.0, W, H, circle_radius_px=600.0)
+    assert lens.f == 600.0 and lens.max_incidence_deg == pytest.approx(125.0)
+    with pytest.raises(ValueError, match="circle_radius_px"):
+        make_lens("equidistant", 180.0, W, H, circle_radius_px=0.0)

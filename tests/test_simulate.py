@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 
 import numpy as np
 import pytest
@@ -220,3 +221,215 @@ def test_write_simulation_and_cli(tmp_path, capsys):
     assert all("sigma" not in t for t in ds["targets"])
     bad = parser.parse_args(["--lens", "pinhole", "--fov-deg", "190", "-o", str(tmp_path / "c")])
     assert run_cli(bad) == 2
+
+
+# -- scenes, image circle, principal point ---------------------------------------------
+
+OBJECTS = {"n_images": 12, "width": 1280, "height": 800}
+
+
+def _observed_geometry(sim):
+    """Per observation: camera-frame point, pixel, target normal and view vector."""
+    xyz = {t["id"]: np.array(t["xyz"]) for t in sim.truth["targets"]}
+    nrm = {t["id"]: np.array(t["normal"]) for t in sim.truth["targets"]}
+    rows = []
+    for im, pose in zip(sim.dataset["images"], sim.truth["images"], strict=True):
+        r = np.array(pose["cam_from_world"]["R"])
+        t = np.array(pose["cam_from_world"]["t"])
+        centre = np.array(pose["centre_world"])
+        for o in im["observations"]:
+            p = xyz[o["target"]]
+            rows.append((r @ p + t, o["uv"], nrm[o["target"]], p - centre))
+    p_cam, uv, normals, view = (np.array(c) for c in zip(*rows, strict=True))
+    return p_cam, uv, normals, view
+
+
+@pytest.mark.parametrize("scene", ["board", "object3d"])
+def test_scenes_deterministic_valid_and_exact(scene):
+    from gtsam_sphere.dataset import parse_dataset
+
+    opts = SimulationOptions(scene=scene, lens="equidistant", fov_deg=190, **OBJECTS)
+    a, b = simulate_room(opts), simulate_room(opts)
+    for key in ("dataset", "checkpoints", "truth"):
+        assert json.dumps(getattr(a, key)) == json.dumps(getattr(b, key))
+    c = simulate_room(SimulationOptions(scene=scene, seed=4, fov_deg=190, **OBJECTS))
+    assert json.dumps(c.dataset) != json.dumps(a.dataset)
+    _check_dataset(a.dataset)
+    ds = parse_dataset(a.dataset)
+    assert ds.n_observations == a.truth["statistics"]["n_observations"]
+    assert len(a.dataset["images"]) == opts.n_images
+    assert a.truth["scene"] == scene
+    # exact control by default: sigma 0 and the true coordinates
+    true = {t["id"]: t["xyz"] for t in a.truth["targets"]}
+    assert all(t["sigma"] == 0.0 and t["xyz"] == true[t["id"]] for t in a.dataset["targets"])
+    assert all(t["xyz"] == true[t["id"]] for t in a.checkpoints["targets"])
+    faces = {t["face"] for t in a.truth["targets"]}
+    assert faces == ({"board"} if scene == "board" else {"plane_xy", "plane_xz", "plane_yz"})
+
+
+@pytest.mark.parametrize("scene", ["board", "object3d"])
+def test_scene_targets_seen_from_the_front_and_exactly_projected(scene):
+    opts = SimulationOptions(scene=scene, lens="fov", fov_deg=200, noise_px=0.0, **OBJECTS)
+    sim = simulate_room(opts)
+    p_cam, uv, normals, view = _observed_geometry(sim)
+    assert np.all(np.sum(normals * view, axis=1) < 0.0)  # the front side only
+    assert np.abs(sim.lens.project(p_cam) - uv).max() < 1e-9
+    if scene == "board":
+        xyz = np.array([t["xyz"] for t in sim.truth["targets"]])
+        assert np.allclose(xyz[:, 2], 0.0) and len(xyz) == 12 * 9
+        assert np.diff(np.unique(xyz[:, 0]))[0] == pytest.approx(0.04)
+
+
+def test_board_reaches_behind_a_250_degree_lens_and_fills_a_narrow_one():
+    wide = simulate_room(
+        SimulationOptions(scene="board", lens="equidistant", fov_deg=250, **OBJECTS)
+    )
+    stats = wide.truth["statistics"]
+    assert 115.0 < stats["max_incidence_deg"] <= 125.0 + 1e-9
+    assert stats["n_observations_beyond_90deg"] > 0.1 * stats["n_observations"]
+    narrow = simulate_room(SimulationOptions(scene="board", lens="pinhole", fov_deg=60, **OBJECTS))
+    for im in narrow.dataset["images"]:
+        uv = np.array([o["uv"] for o in im["observations"]])
+        extent = np.ptp(uv, axis=0).max() / max(OBJECTS["width"], OBJECTS["height"])
+        assert extent > 0.15  # the board is a good part of the image, not a speck
+    # all images together cover the image: every cell of a 4 x 4 grid holds observations
+    uv = np.array([o["uv"] for im in narrow.dataset["images"] for o in im["observations"]])
+    cells = set(map(tuple, np.floor(uv / [OBJECTS["width"] / 4, OBJECTS["height"] / 4])))
+    assert len(cells) == 16
+
+
+@pytest.mark.parametrize("scene", ["room", "board"])
+@pytest.mark.parametrize(
+    ("fov", "radius_factor", "pp"),
+    [(180.0, 0.25, (0.0, 0.0)), (200.0, 1.3, (0.1, -0.1)), (120.0, 0.45, (-0.1, 0.08))],
+)
+def test_circle_radius_and_principal_point_honoured(scene, fov, radius_factor, pp):
+    w, h = 1600, 1200
+    short, half_diag = min(w, h), math.hypot(w, h) / 2
+    radius = radius_factor * (short if radius_factor < 1 else half_diag)
+    cx, cy = (w - 1) / 2 + pp[0] * w, (h - 1) / 2 + pp[1] * h
+    opts = SimulationOptions(
+        scene=scene,
+        lens="equisolid",
+        fov_deg=fov,
+        width=w,
+        height=h,
+        circle_radius_px=radius,
+        lens_options={"cx": cx, "cy": cy},
+        noise_px=0.0,
+        n_images=10,
+    )
+    sim = simulate_room(opts)
+    assert (sim.truth["lens"]["cx"], sim.truth["lens"]["cy"]) == (cx, cy)
+    p_cam, uv, _, _ = _observed_geometry(sim)
+    alpha = np.degrees(np.arctan2(np.hypot(p_cam[:, 0], p_cam[:, 1]), p_cam[:, 2]))
+    r = np.hypot(uv[:, 0] - cx, uv[:, 1] - cy)
+    assert alpha.max() <= fov / 2 + 1e-9 and r.max() <= radius * (1 + 1e-9)
+    m = opts.margin_px
+    assert uv.min() >= -0.5 + m and (uv.max(axis=0) <= [w - 0.5 - m, h - 0.5 - m]).all()
+    if radius_factor < 1:  # a small circle: the periphery of the circle is used
+        assert r.max() > 0.9 * radius
+    else:  # a cropped circle: the image border limits the incidence, corners are used
+        assert alpha.max() < fov / 2 - 5.0
+        corner_r = np.hypot(np.array([-0.5, w - 0.5]) - cx, np.array([-0.5, h - 0.5])[:, None] - cy)
+        assert r.max() > 0.85 * corner_r.max()
+
+
+def test_scene_noise_blunders_and_imperfections():
+    opts = SimulationOptions(
+        scene="object3d",
+        lens="double-sphere",
+        fov_deg=220,
+        blunder_rate=0.05,
+        pupil_shift_m=0.002,
+        error_field_px=1.5,
+        sigma_mode="weighted",
+        **OBJECTS,
+    )
+    sim = simulate_room(opts)
+    n_obs = sim.truth["statistics"]["n_observations"]
+    assert len(sim.truth["blunders"]) == round(0.05 * n_obs)
+    assert sim.truth["lens"]["kind"] == "error-field"
+    assert all(t["sigma"] == opts.target_sigma_m for t in sim.dataset["targets"])
+    _check_dataset(sim.dataset)
+
+
+def test_scene_validation():
+    with pytest.raises(ValueError, match="scene"):
+        simulate_room(SimulationOptions(scene="cave", **OBJECTS))
+    with pytest.raises(ValueError, match="board"):
+        simulate_room(SimulationOptions(scene="board", board_shape=(1, 9), **OBJECTS))
+
+
+def test_cli_scene_circle_and_principal_point(tmp_path, capsys):
+    parser = add_cli_arguments(argparse.ArgumentParser())
+    args = parser.parse_args(
+        ["--scene", "board", "--lens", "double-sphere", "--fov-deg", "230"]
+        + ["--lens-option", "xi=-0.1", "--lens-option", "alpha=0.6", "--n-images", "8"]
+        + ["--width", "1600", "--height", "1200", "--cx", "900", "--cy", "650"]
+        + ["--circle-radius-px", "700", "-o", str(tmp_path / "b")]
+    )
+    assert run_cli(args) == 0
+    assert "scene board" in capsys.readouterr().out
+    truth = json.loads((tmp_path / "b" / "truth.json").read_text())
+    lens = truth["lens"]
+    assert (lens["kind"], lens["cx"], lens["cy"], lens["xi"]) == ("double-sphere", 900, 650, -0.1)
+    assert truth["options"]["circle_radius_px"] == 700.0
+    _check_dataset(json.loads((tmp_path / "b" / "dataset.json").read_text()))
+    bad = parser.parse_args(["--lens-option", "xi", "-o", str(tmp_path / "c")])
+    assert run_cli(bad) == 2
+
+
+def test_offset_principal_point_with_filled_diagonal_caps_incidence_at_half_fov():
+    # fov/2 lands on the half diagonal from the principal point; moved by 10%, the far
+    # corner would show more than fov/2 without the visibility cap
+    w, h, fov = 1600, 1200, 120.0
+    cx, cy = (w - 1) / 2 + 0.1 * w, (h - 1) / 2 + 0.1 * h
+    opts = SimulationOptions(
+        lens="equidistant",
+        fov_deg=fov,
+        width=w,
+        height=h,
+        fill="diagonal",
+        lens_options={"cx": cx, "cy": cy},
+        noise_px=0.0,
+        n_images=16,
+    )
+    sim = simulate_room(opts)
+    assert sim.lens.max_incidence_deg > fov / 2  # the lens itself would see further
+    p_cam, uv, _, _ = _observed_geometry(sim)
+    alpha = np.degrees(np.arctan2(np.hypot(p_cam[:, 0], p_cam[:, 1]), p_cam[:, 2]))
+    assert fov / 2 - 3.0 < alpha.max() <= fov / 2 + 1e-9
+    # the far corner (top left) is not reached, the near ones are
+    assert np.hypot(uv[:, 0] - cx, uv[:, 1] - cy).max() <= math.hypot(w, h) / 2 + 1e-6
+
+
+def test_lens_zoo_case_list_builds(monkeypatch):
+    import importlib.util
+    import os
+    import sys
+    from pathlib import Path
+
+    from gtsam_sphere.simulate import build_lens
+
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_lens_zoo.py"
+    spec = importlib.util.spec_from_file_location("bench_lens_zoo", path)
+    zoo = importlib.util.module_from_spec(spec)
+    monkeypatch.setitem(sys.modules, "bench_lens_zoo", zoo)  # its dataclass needs the module
+    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        # the script pins its threads with os.environ.setdefault: restored after the test
+        monkeypatch.setenv(var, os.environ.get(var, "1"))
+    spec.loader.exec_module(zoo)
+    cases = zoo.build_cases(0)
+    assert len(cases) >= 60 and len({c.id for c in cases}) == len(cases)
+    assert [c.id for c in zoo.build_cases(0)] == [c.id for c in cases]
+    assert {c.scene for c in cases} == {"room", "board", "object3d"}
+    assert len({c.family for c in cases}) == 9
+    assert min(c.fov_deg for c in cases) <= 60 and max(c.fov_deg for c in cases) == 360
+    assert {0.25, 1.3} <= {c.circle for c in cases}
+    assert max(max(abs(v) for v in c.pp_offset) for c in cases) == pytest.approx(0.1)
+    assert any(c.pupil_shift_m and c.error_field_px for c in cases)
+    for c in cases:  # every family reaches the field of view it is given
+        build_lens(c.options())
+    quick = zoo.quick_cases(cases)
+    assert 6 <= len(quick) <= 10 and {c.scene for c in quick} == {"room", "board", "object3d"}

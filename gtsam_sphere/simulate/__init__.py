@@ -1,4 +1,4 @@
-"""Seeded simulator of the paper's room calibration (Chow et al. 2018).
+"""Seeded simulator of calibrations: the paper's room (Chow et al. 2018), a board, a 3D object.
 
 Public API::
 
@@ -6,8 +6,10 @@ Public API::
     sim = simulate_room(SimulationOptions(lens="sphere", fov_deg=200, seed=1))
     write_simulation(sim, "out/")   # dataset.json, checkpoints.json, truth.json
 
-Lens families live in :mod:`gtsam_sphere.simulate.lenses`, the room in
-:mod:`gtsam_sphere.simulate.room`. :func:`add_cli_arguments` and
+Lens families live in :mod:`gtsam_sphere.simulate.lenses`, the room and the
+shared pipeline in :mod:`gtsam_sphere.simulate.room`, the board and the cube
+corner (``SimulationOptions(scene="board" | "object3d")``) in
+:mod:`gtsam_sphere.simulate.scenes`. :func:`add_cli_arguments` and
 :func:`run_cli` implement ``gtsam-sphere simulate``.
 """
 
@@ -19,9 +21,11 @@ from typing import Any
 
 from .lenses import (
     LENS_KINDS,
+    DoubleSphere,
     Equidistant,
     Equisolid,
     ErrorField,
+    FieldOfView,
     KannalaBrandt,
     NonCentral,
     PinholeBrown,
@@ -33,6 +37,7 @@ from .lenses import (
     make_lens,
 )
 from .room import (
+    SCENES,
     SIGMA_MODES,
     Simulation,
     SimulationOptions,
@@ -45,10 +50,13 @@ from .room import (
 
 __all__ = [
     "LENS_KINDS",
+    "SCENES",
     "SIGMA_MODES",
+    "DoubleSphere",
     "Equidistant",
     "Equisolid",
     "ErrorField",
+    "FieldOfView",
     "KannalaBrandt",
     "NonCentral",
     "PinholeBrown",
@@ -79,6 +87,12 @@ _FLAGS: dict[str, tuple[str, type, str]] = {
     "--width": ("width", int, "image width in pixels"),
     "--height": ("height", int, "image height in pixels"),
     "--fill": ("fill", str, "where fov/2 lands: circle or diagonal"),
+    "--circle-radius-px": (
+        "circle_radius_px",
+        float,
+        "radius (px) where fov/2 lands (overrides --fill; may exceed the half diagonal)",
+    ),
+    "--scene": ("scene", str, "room (inside-out), board (planar grid) or object3d (cube corner)"),
     "--n-images": ("n_images", int, "number of images"),
     "--n-targets": ("n_targets", int, "number of targets in the room"),
     "--n-checkpoints": ("n_checkpoints", int, "number of check points"),
@@ -121,7 +135,24 @@ def add_cli_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParse
             kwargs["choices"] = list(SIGMA_MODES)
         elif dest == "fill":
             kwargs["choices"] = ["circle", "diagonal"]
+        elif dest == "scene":
+            kwargs["choices"] = list(SCENES)
         parser.add_argument(flag, **kwargs)
+    for flag, name in (("--cx", "u"), ("--cy", "v")):
+        parser.add_argument(
+            flag,
+            type=float,
+            default=None,
+            help=f"principal point {name} in px (default: the image centre)",
+        )
+    parser.add_argument(
+        "--lens-option",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="any other lens parameter, e.g. xi=-0.2, alpha=0.6 (double-sphere), "
+        "omega=1.0 (fov), k1=0.03 (repeatable)",
+    )
     parser.add_argument(
         "-o", "--out", "--output", dest="out", required=True, help="output directory"
     )
@@ -143,11 +174,22 @@ def options_from_args(args: argparse.Namespace) -> SimulationOptions:
     """
     preset = getattr(args, "preset", None)
     base = _PRESETS[preset]() if preset else SimulationOptions()
-    overrides = {
+    overrides: dict[str, Any] = {
         dest: getattr(args, dest)
         for dest, _, _ in _FLAGS.values()
         if getattr(args, dest, None) is not None
     }
+    lens_options = dict(base.lens_options)
+    for item in getattr(args, "lens_option", None) or []:
+        name, sep, value = item.partition("=")
+        if not sep or not name.strip():
+            raise ValueError(f"--lens-option expects NAME=VALUE, got {item!r}")
+        lens_options[name.strip()] = float(value)
+    for name in ("cx", "cy"):
+        if getattr(args, name, None) is not None:
+            lens_options[name] = float(getattr(args, name))
+    if lens_options != base.lens_options:
+        overrides["lens_options"] = lens_options
     return replace(base, **overrides)
 
 
@@ -176,7 +218,7 @@ def run_cli(args: argparse.Namespace) -> int:
     stats = sim.truth["statistics"]
     print(
         f"simulated {options.lens} lens, {options.fov_deg:g} deg, "
-        f"{options.width}x{options.height} px, seed {options.seed}"
+        f"{options.width}x{options.height} px, scene {options.scene}, seed {options.seed}"
     )
     print(
         f"images {stats['n_images']}, targets {stats['n_targets']}, "

@@ -49,6 +49,8 @@ __all__ = [
     "SphereLens",
     "KannalaBrandt",
     "Unified",
+    "DoubleSphere",
+    "FieldOfView",
     "NonCentral",
     "ErrorField",
     "LENS_KINDS",
@@ -110,6 +112,16 @@ def _bisect_increasing(func, target: np.ndarray, lo: float, hi: float, n_iter: i
         a = np.where(below, mid, a)
         b = np.where(below, b, mid)
     return 0.5 * (a + b)
+
+
+def _monotonic_limit(func, hi: float) -> float:
+    """Largest angle in ``[0, hi]`` (rad) up to which ``func`` is finite and increasing."""
+    alpha = np.linspace(0.0, hi, _GRID)
+    with np.errstate(all="ignore"):
+        values = func(alpha)
+    ok = np.isfinite(values[1:]) & (np.diff(values) > 0.0)
+    bad = np.flatnonzero(~ok)
+    return hi if bad.size == 0 else float(alpha[max(bad[0] - 1, 1)])
 
 
 @dataclass(frozen=True)
@@ -183,13 +195,7 @@ class _CentralLens:
     def _max_rad(self) -> float:
         limit = min(self._base_max_rad, math.radians(self.max_angle_deg))
         if any(k != 0.0 for k in self._radial_coeffs):
-            alpha = np.linspace(0.0, self._base_max_rad, _GRID)
-            with np.errstate(all="ignore"):
-                rad = self._radial_total(alpha)
-            ok = np.isfinite(rad[1:]) & (np.diff(rad) > 0.0)
-            bad = np.flatnonzero(~ok)
-            if bad.size:
-                limit = min(limit, float(alpha[max(bad[0] - 1, 1)]))
+            limit = min(limit, _monotonic_limit(self._radial_total, self._base_max_rad))
         return limit
 
     @property
@@ -510,6 +516,107 @@ class SphereLens(_CentralLens):
         bad = ~np.isfinite(rho) | (rho > 1.0 + 1e-12) | (alpha > self._max_rad + 1e-9)
         rays[bad] = np.nan
         return rays
+
+
+@dataclass(frozen=True)
+class DoubleSphere(_CentralLens):
+    """Double sphere camera model (Usenko, Demmel and Cremers 2018).
+
+    The point ``p`` (distance ``d1 = |p|``) is projected onto a first unit
+    sphere, shifted by ``xi`` along the optical axis onto a second one
+    (``d2 = |(x, y, xi d1 + z)|``) and projected by a pinhole displaced by
+    ``alpha / (1 - alpha)``::
+
+        q = (x, y) / (alpha d2 + (1 - alpha) (xi d1 + z))
+
+    For a unit direction at incidence ``a`` this is the radial mapping
+    ``rho0(a) = sin a / (alpha sqrt(sin^2 a + (xi + cos a)^2) + (1 - alpha)(xi + cos a))``.
+    The paper's validity condition ``z > -w2 d1`` with
+    ``w1 = alpha / (1 - alpha)`` (``alpha <= 1/2``) or ``(1 - alpha) / alpha``,
+    ``w2 = (w1 + xi) / sqrt(2 w1 xi + xi^2 + 1)`` gives the largest incidence
+    ``acos(-w2)``: past 180 degrees of field of view when ``w2 > 0`` (e.g.
+    ``xi = -0.2, alpha = 0.6`` reaches 244 degrees, ``alpha = 0.5`` 360).
+    :meth:`unproject` uses the paper's closed-form inverse.
+
+    Parameters
+    ----------
+    xi : float
+        Shift between the two spheres (dimensionless, typically ``-0.3 .. 0.3``).
+    alpha : float
+        Pinhole displacement parameter in ``[0, 1)`` (dimensionless).
+    """
+
+    xi: float = -0.2
+    alpha: float = 0.6
+
+    kind: ClassVar[str] = "double-sphere"
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.alpha < 1.0:
+            raise ValueError(f"double-sphere alpha must be in [0, 1), got {self.alpha}")
+
+    def _rho0(self, alpha):
+        s, c = np.sin(alpha), np.cos(alpha)
+        shifted = self.xi + c
+        d2 = np.sqrt(s * s + shifted * shifted)
+        return s / (self.alpha * d2 + (1.0 - self.alpha) * shifted)
+
+    def _alpha0(self, rho):
+        r2 = np.asarray(rho, dtype=float) ** 2
+        a, xi = self.alpha, self.xi
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mz = (1.0 - a * a * r2) / (a * np.sqrt(1.0 - (2.0 * a - 1.0) * r2) + 1.0 - a)
+            k = (mz * xi + np.sqrt(mz * mz + (1.0 - xi * xi) * r2)) / (mz * mz + r2)
+        return np.arctan2(k * np.sqrt(r2), k * mz - xi)
+
+    @cached_property
+    def _base_max_rad(self):
+        a, xi = self.alpha, self.xi
+        w1 = a / (1.0 - a) if a <= 0.5 else (1.0 - a) / a
+        w2 = (w1 + xi) / math.sqrt(2.0 * w1 * xi + xi * xi + 1.0)
+        limit = math.acos(min(max(-w2, -1.0), 1.0))
+        return _monotonic_limit(self._rho0, min(limit, math.pi - 1e-6))
+
+
+@dataclass(frozen=True)
+class FieldOfView(_CentralLens):
+    """Field-of-view (FOV) model of Devernay and Faugeras (2001), parameter ``omega``.
+
+    The paper maps the pinhole radius ``r_u = tan a`` to
+    ``r_d = arctan(2 r_u tan(omega / 2)) / omega``. Written with the incidence
+    angle ``a`` this is ``rho0(a) = atan2(2 tan(omega / 2) sin a, cos a) / omega``,
+    identical below 90 degrees and its continuous, increasing extension past
+    them (``rho0(90 deg) = pi / (2 omega)``, ``rho0 -> pi / omega`` at 180
+    degrees), so the model is valid over the whole sphere bar the antipode of
+    the axis. Its inverse is ``a = atan2(sin(omega rho), 2 tan(omega / 2) cos(omega rho))``.
+
+    Parameters
+    ----------
+    omega : float
+        The model's parameter (radians, in ``(0, pi)``); the scale ``f`` is
+        chosen by :func:`make_lens`, so ``omega`` only sets the shape.
+    """
+
+    omega: float = 1.0
+
+    kind: ClassVar[str] = "fov"
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.omega < math.pi:
+            raise ValueError(f"fov omega must be in (0, pi) radians, got {self.omega}")
+
+    def _rho0(self, alpha):
+        k = 2.0 * math.tan(0.5 * self.omega)
+        return np.arctan2(k * np.sin(alpha), np.cos(alpha)) / self.omega
+
+    def _alpha0(self, rho):
+        k = 2.0 * math.tan(0.5 * self.omega)
+        w = self.omega * np.asarray(rho, dtype=float)
+        return np.arctan2(np.sin(w), k * np.cos(w))
+
+    @property
+    def _base_max_rad(self):
+        return math.pi - 1e-6
 
 
 # -- imperfection wrappers ------------------------------------------------------
@@ -844,6 +951,8 @@ LENS_KINDS: dict[str, type] = {
     "sphere": SphereLens,
     "kannala-brandt": KannalaBrandt,
     "unified": Unified,
+    "double-sphere": DoubleSphere,
+    "fov": FieldOfView,
 }
 
 
@@ -879,15 +988,22 @@ def lens_from_dict(desc: dict[str, Any]) -> Any:
 
 
 def make_lens(
-    kind: str, fov_deg: float, width: int, height: int, fill: str | None = None, **options: Any
+    kind: str,
+    fov_deg: float,
+    width: int,
+    height: int,
+    fill: str | None = None,
+    circle_radius_px: float | None = None,
+    **options: Any,
 ) -> Any:
-    """Build a lens whose half field of view lands on the image border.
+    """Build a lens whose half field of view lands on the image border or a given circle.
 
     Parameters
     ----------
     kind : str
-        One of ``"pinhole"``, ``"equidistant"``, ``"equisolid"``,
-        ``"stereographic"``, ``"sphere"``, ``"kannala-brandt"``, ``"unified"``.
+        One of :data:`LENS_KINDS`: ``"pinhole"``, ``"equidistant"``,
+        ``"equisolid"``, ``"stereographic"``, ``"sphere"``,
+        ``"kannala-brandt"``, ``"unified"``, ``"double-sphere"``, ``"fov"``.
     fov_deg : float
         Full field of view (degrees) across the circle or the diagonal.
     width, height : int
@@ -900,9 +1016,17 @@ def make_lens(
         ``"diagonal"``: at the half diagonal (default below 180 degrees).
         For the sphere lens above 180 degrees the disc radius is ``f``, so
         ``f = 0.98 * min(width, height) / 2`` whatever ``fill`` says.
+    circle_radius_px : float or None
+        Overrides ``fill``: ``fov_deg / 2`` lands at this distance (pixels)
+        from the principal point and incidence is capped at ``fov_deg / 2``.
+        Smaller than the image (e.g. ``0.25 * min(width, height)``: a small
+        circular fisheye on a large sensor) or larger than the half diagonal
+        (a full-frame fisheye whose circle the sensor crops: the image border
+        then limits the incidence). For the sphere lens above 180 degrees it
+        is the disc radius ``f``.
     **options
         Other lens parameters (``cx``, ``cy``, ``k1``, ``p1``, ``a1``, ``xi``,
-        ``max_angle_deg``, ...).
+        ``alpha``, ``omega``, ``max_angle_deg``, ...).
 
     Returns
     -------
@@ -912,13 +1036,17 @@ def make_lens(
     Raises
     ------
     ValueError
-        For an unknown ``kind``, ``fill``, option or a field of view the family
-        cannot reach.
+        For an unknown ``kind``, ``fill``, option, a non-positive
+        ``circle_radius_px`` or a field of view the family cannot reach.
     """
     if kind not in LENS_KINDS:
         raise ValueError(f"unknown lens kind {kind!r}; expected one of {sorted(LENS_KINDS)}")
     if not (0.0 < fov_deg <= 360.0):
         raise ValueError(f"fov_deg must be in (0, 360], got {fov_deg}")
+    if circle_radius_px is not None:
+        if not (math.isfinite(circle_radius_px) and circle_radius_px > 0.0):
+            raise ValueError(f"circle_radius_px must be positive, got {circle_radius_px}")
+        fill = "circle"
     if fill is None:
         fill = "circle" if fov_deg >= 180.0 else "diagonal"
     if fill not in ("circle", "diagonal"):
@@ -939,16 +1067,22 @@ def make_lens(
     if (fill == "circle" or kind == "sphere") and "max_angle_deg" not in options:
         default_cap = {fl.name: fl.default for fl in fields(cls)}["max_angle_deg"]
         params["max_angle_deg"] = min(default_cap, fov_deg / 2.0)
+    if circle_radius_px is not None:
+        radius_px = float(circle_radius_px)
+    elif fill == "circle":
+        radius_px = min(width, height) / 2.0
+    else:
+        radius_px = math.hypot(width, height) / 2.0
     if kind == "sphere" and fov_deg > 180.0:
         params["max_angle_deg"] = min(params.get("max_angle_deg", 180.0), fov_deg / 2.0)
-        return cls(f=0.98 * min(width, height) / 2.0, **params)
+        disc_px = radius_px if circle_radius_px is not None else 0.98 * min(width, height) / 2.0
+        return cls(f=disc_px, **params)
     unit = cls(f=1.0, **params)
     if half > unit._max_rad + 1e-9:
         raise ValueError(
             f"lens kind {kind!r} cannot reach fov_deg={fov_deg}: its mapping is valid only up "
             f"to {2 * unit.max_incidence_deg:.3f} degrees of field of view"
         )
-    radius_px = min(width, height) / 2.0 if fill == "circle" else math.hypot(width, height) / 2.0
     rho = float(unit._radial_total(np.array([half]))[0])
     if not (np.isfinite(rho) and rho > 0.0):
         raise ValueError(f"lens kind {kind!r} cannot reach fov_deg={fov_deg}")

@@ -7,9 +7,16 @@ floor, ceiling and four walls; camera stations stand inside the room at
 least ``wall_clearance_m`` from every wall, look in varied headings and
 tilts, and alternate landscape (roll 0) and portrait (roll 90 degrees).
 
+The same pipeline simulates a planar board or a cube corner seen from
+outside (``scene="board"`` / ``"object3d"``, geometry and pose sampling in
+:mod:`gtsam_sphere.simulate.scenes`): only the targets and the pose sampler
+differ, observation, noise, blunders, the check points and the three
+documents are shared.
+
 A target is observed in an image when the lens can image it, its pixel lies
-at least ``margin_px`` inside the image, it is at least ``min_range_m`` away
-and it faces the camera (``normal . view_direction < -facing_cos``). Poses
+at least ``margin_px`` inside the image (whatever the principal point), its
+incidence angle is at most ``fov_deg / 2``, it is at least ``min_range_m``
+away and it faces the camera (``normal . view_direction < -facing_cos``). Poses
 are redrawn until every image sees at least ``min_targets_per_image``
 targets (and preferably ``preferred_targets_per_image``), so no image is
 dropped. Pixels then get Gaussian noise
@@ -28,6 +35,7 @@ from __future__ import annotations
 
 import math
 import os
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -35,6 +43,15 @@ from typing import Any
 import numpy as np
 
 from .lenses import ErrorField, NonCentral, make_lens
+from .scenes import (
+    AimedPoses,
+    board_targets,
+    board_view_dir,
+    corner_view_dir,
+    field_half_angle_rad,
+    inside_image,
+    object3d_targets,
+)
 
 __all__ = [
     "SimulationOptions",
@@ -45,9 +62,11 @@ __all__ = [
     "nikon_like",
     "gopro_like",
     "SIGMA_MODES",
+    "SCENES",
 ]
 
 SIGMA_MODES = ("weighted", "free", "fixed")
+SCENES = ("room", "board", "object3d")
 DATASET_FORMAT = "gtsam-sphere/dataset@1"
 CHECKPOINTS_FORMAT = "gtsam-sphere/checkpoints@1"
 TRUTH_FORMAT = "gtsam-sphere/truth@1"
@@ -55,7 +74,7 @@ TRUTH_FORMAT = "gtsam-sphere/truth@1"
 
 @dataclass
 class SimulationOptions:
-    """Everything that defines a simulated room calibration.
+    """Everything that defines a simulated calibration (room, board or 3D object).
 
     Attributes
     ----------
@@ -68,8 +87,13 @@ class SimulationOptions:
         example; landscape, portrait images are the same sensor rolled).
     fill : str or None
         ``"circle"`` / ``"diagonal"`` / None (see ``make_lens``).
+    circle_radius_px : float or None
+        Radius (pixels) at which ``fov_deg / 2`` lands; overrides ``fill``
+        (see ``make_lens``): from a small circle on a large sensor to a
+        circle larger than the half diagonal, cropped by the image.
     lens_options : dict
-        Extra lens parameters (``k1``, ``xi``, ...) passed to ``make_lens``.
+        Extra lens parameters (``k1``, ``xi``, ``alpha``, ``omega``, ``cx``,
+        ``cy`` in pixels, ...) passed to ``make_lens``.
     p1, p2 : float
         Decentering distortion (normalised coordinates).
     a1, a2 : float
@@ -96,9 +120,11 @@ class SimulationOptions:
         Standard deviation of pixel noise per axis.
     target_sigma_m : float
         Standard deviation per axis of the approximate target coordinates.
-    sigma_mode : str
+    sigma_mode : str or None
         ``"weighted"`` (write ``sigma = target_sigma_m``), ``"free"`` (omit
-        sigma) or ``"fixed"`` (exact coordinates with ``sigma = 0``).
+        sigma) or ``"fixed"`` (exact coordinates with ``sigma = 0``); None:
+        the scene's default, ``"weighted"`` for the room and ``"fixed"`` for
+        the printed objects (``"board"``, ``"object3d"``).
     n_checkpoints : int
         Number of targets whose true coordinates go to the checkpoints file.
     checkpoint_noise_m : float
@@ -114,10 +140,25 @@ class SimulationOptions:
         Minimum distance of an observation from the image border.
     facing_cos : float
         A target is visible when ``normal . view_dir < -facing_cos``.
-    min_range_m : float
-        Minimum camera-to-target distance.
+    min_range_m : float or None
+        Minimum camera-to-target distance (metres); None: 0.3 for the room,
+        0.05 for the objects.
     seed : int
         Seed used when ``simulate_room`` gets no generator.
+    scene : str
+        ``"room"`` (targets on the walls, seen inside-out), ``"board"`` (a
+        planar grid) or ``"object3d"`` (three orthogonal grids, a cube corner);
+        see :mod:`gtsam_sphere.simulate.scenes`.
+    board_shape : tuple of int
+        ``(cols, rows)`` corners of the board.
+    board_spacing_m : float
+        Corner spacing of the board (metres).
+    board_tilt_deg : float
+        Largest angle between a viewing direction and the board normal.
+    object_grid : int
+        Points per side of each of the cube corner's three grids.
+    object_spacing_m : float
+        Grid spacing of the cube corner (metres).
     """
 
     lens: str = "equidistant"
@@ -125,6 +166,7 @@ class SimulationOptions:
     width: int = 4000
     height: int = 3000
     fill: str | None = None
+    circle_radius_px: float | None = None
     lens_options: dict[str, float] = field(default_factory=dict)
     p1: float = 0.0
     p2: float = 0.0
@@ -141,7 +183,7 @@ class SimulationOptions:
     tilt_deg: float = 45.0
     noise_px: float = 0.3
     target_sigma_m: float = 0.01
-    sigma_mode: str = "weighted"
+    sigma_mode: str | None = None
     n_checkpoints: int = 191
     checkpoint_noise_m: float = 0.0
     blunder_rate: float = 0.0
@@ -149,12 +191,34 @@ class SimulationOptions:
     preferred_targets_per_image: int = 20
     margin_px: float = 5.0
     facing_cos: float = 0.1
-    min_range_m: float = 0.3
+    min_range_m: float | None = None
     seed: int = 0
+    scene: str = "room"
+    board_shape: tuple[int, int] = (12, 9)
+    board_spacing_m: float = 0.04
+    board_tilt_deg: float = 60.0
+    object_grid: int = 8
+    object_spacing_m: float = 0.05
+
+    @property
+    def effective_sigma_mode(self) -> str:
+        """``sigma_mode``, or the scene's default when it is None."""
+        if self.sigma_mode is not None:
+            return self.sigma_mode
+        return "weighted" if self.scene == "room" else "fixed"
+
+    @property
+    def effective_min_range_m(self) -> float:
+        """``min_range_m``, or the scene's default (metres) when it is None."""
+        if self.min_range_m is not None:
+            return float(self.min_range_m)
+        return 0.3 if self.scene == "room" else 0.05
 
     def validate(self) -> None:
         """Raise ``ValueError`` naming the first inconsistent option."""
-        if self.sigma_mode not in SIGMA_MODES:
+        if self.scene not in SCENES:
+            raise ValueError(f"scene must be one of {SCENES}, got {self.scene!r}")
+        if self.effective_sigma_mode not in SIGMA_MODES:
             raise ValueError(f"sigma_mode must be one of {SIGMA_MODES}, got {self.sigma_mode!r}")
         if not 0.0 <= self.blunder_rate < 1.0:
             raise ValueError(f"blunder_rate must be in [0, 1), got {self.blunder_rate}")
@@ -162,6 +226,17 @@ class SimulationOptions:
             raise ValueError("n_images and n_targets must be positive")
         if self.width < 2 or self.height < 2:
             raise ValueError(f"bad image size {self.width}x{self.height}")
+        if self.noise_px < 0 or self.target_sigma_m < 0 or self.checkpoint_noise_m < 0:
+            raise ValueError("noise_px, target_sigma_m and checkpoint_noise_m must be >= 0")
+        if self.scene == "board":
+            if min(self.board_shape) < 2 or self.board_spacing_m <= 0:
+                raise ValueError(f"bad board {self.board_shape} x {self.board_spacing_m} m")
+            if not 0.0 < self.board_tilt_deg < 85.0:
+                raise ValueError(f"board_tilt_deg must be in (0, 85), got {self.board_tilt_deg}")
+        if self.scene == "object3d" and (self.object_grid < 2 or self.object_spacing_m <= 0):
+            raise ValueError(f"bad object grid {self.object_grid} x {self.object_spacing_m} m")
+        if self.scene != "room":
+            return
         length, width, height = self.room_size_m
         c = self.wall_clearance_m
         if min(length, width) <= 2 * c or height <= 0:
@@ -169,8 +244,6 @@ class SimulationOptions:
         lo, hi = self.station_height_m
         if not 0.0 < lo <= hi < height:
             raise ValueError(f"station_height_m {self.station_height_m} must lie inside the room")
-        if self.noise_px < 0 or self.target_sigma_m < 0 or self.checkpoint_noise_m < 0:
-            raise ValueError("noise_px, target_sigma_m and checkpoint_noise_m must be >= 0")
 
 
 @dataclass
@@ -218,7 +291,13 @@ def build_lens(options: SimulationOptions) -> Any:
         if value:
             params[name] = value
     lens = make_lens(
-        options.lens, options.fov_deg, options.width, options.height, fill=options.fill, **params
+        options.lens,
+        options.fov_deg,
+        options.width,
+        options.height,
+        fill=options.fill,
+        circle_radius_px=options.circle_radius_px,
+        **params,
     )
     if options.pupil_shift_m:
         lens = NonCentral(lens, options.pupil_shift_m)
@@ -292,23 +371,116 @@ def _rotation_world_from_cam(yaw: float, pitch: float, roll: float) -> np.ndarra
 
 
 def _observe(lens, options, R, t, centre, xyz, normals):
-    """Visible target indices, their true pixels and incidence angles (deg)."""
+    """Visible target indices, their true pixels and incidence angles (deg).
+
+    Visible: inside the image by ``margin_px``, incidence at most
+    ``fov_deg / 2``, facing the camera and at least the minimum range away.
+    """
     p_cam = xyz @ R.T + t
     view = xyz - centre
     dist = np.linalg.norm(view, axis=1)
     facing = np.sum(normals * view, axis=1) / np.maximum(dist, 1e-12) < -options.facing_cos
     uv = lens.project(p_cam)
-    m = options.margin_px
-    inside = (
-        np.isfinite(uv).all(axis=1)
-        & (uv[:, 0] >= -0.5 + m)
-        & (uv[:, 0] <= options.width - 0.5 - m)
-        & (uv[:, 1] >= -0.5 + m)
-        & (uv[:, 1] <= options.height - 0.5 - m)
+    alpha = np.degrees(np.arctan2(np.hypot(p_cam[:, 0], p_cam[:, 1]), p_cam[:, 2]))
+    inside = inside_image(uv, options.width, options.height, options.margin_px) & (
+        alpha <= options.fov_deg / 2.0 + 1e-9
     )
-    keep = np.flatnonzero(facing & inside & (dist >= options.min_range_m))
-    alpha = np.degrees(np.arctan2(np.hypot(p_cam[keep, 0], p_cam[keep, 1]), p_cam[keep, 2]))
-    return keep, uv[keep], alpha
+    keep = np.flatnonzero(facing & inside & (dist >= options.effective_min_range_m))
+    return keep, uv[keep], alpha[keep]
+
+
+@dataclass
+class _Scene:
+    """Targets (world frame, metres) and a pose sampler ``(j, rng) -> (R, t, centre, label)``."""
+
+    xyz: np.ndarray
+    normals: np.ndarray
+    labels: list[str]
+    sample_pose: Callable[[int, np.random.Generator], tuple]
+
+
+def _room_scene(options: SimulationOptions, lens: Any, rng: np.random.Generator) -> _Scene:
+    """The paper's room: targets on every face, stations inside, portrait every other image."""
+    xyz, normals, faces = _place_targets(options, rng)
+    lx, ly, _ = options.room_size_m
+    clear = options.wall_clearance_m
+    h_lo, h_hi = options.station_height_m
+    tilt = math.radians(options.tilt_deg)
+
+    def sample_pose(j: int, gen: np.random.Generator):
+        portrait = j % 2 == 1
+        centre = np.array([gen.uniform(clear, lx - clear), gen.uniform(clear, ly - clear), 0.0])
+        centre[2] = gen.uniform(h_lo, h_hi)
+        yaw = gen.uniform(-math.pi, math.pi)
+        pitch = gen.uniform(-tilt, tilt)
+        roll = (math.pi / 2 if portrait else 0.0) + math.radians(gen.normal(0.0, 2.0))
+        R = _rotation_world_from_cam(yaw, pitch, roll).T  # cam_from_world
+        return R, -R @ centre, centre, "portrait" if portrait else "landscape"
+
+    return _Scene(xyz, normals, faces, sample_pose)
+
+
+def _object_scene(options: SimulationOptions, lens: Any, rng: np.random.Generator) -> _Scene:
+    """A board or a cube corner, aimed at random places of the image (``scenes.AimedPoses``)."""
+    if options.scene == "board":
+        xyz, normals, labels = board_targets(options.board_shape, options.board_spacing_m)
+        view_dir = board_view_dir(math.radians(options.board_tilt_deg))
+    else:
+        xyz, normals, labels = object3d_targets(options.object_grid, options.object_spacing_m)
+        view_dir = corner_view_dir()
+    centre = xyz.mean(axis=0)
+    poses = AimedPoses(
+        lens=lens,
+        centre_world=centre,
+        radius_m=float(np.linalg.norm(xyz - centre, axis=1).max()),
+        view_dir=view_dir,
+        half_fov_rad=math.radians(options.fov_deg / 2.0),
+        field_half_rad=field_half_angle_rad(
+            lens, options.fov_deg, options.width, options.height, options.margin_px
+        ),
+        width=options.width,
+        height=options.height,
+        margin_px=options.margin_px,
+    )
+    return _Scene(xyz, normals, labels, poses)
+
+
+def _shoot(options: SimulationOptions, lens: Any, scene: _Scene, rng: np.random.Generator):
+    """Draw ``n_images`` poses that see enough targets; noisy observations of each."""
+    images = []
+    for j in range(options.n_images):
+        best = None
+        for attempt in range(1000):
+            R, t, centre, label = scene.sample_pose(j, rng)
+            keep, uv, alpha = _observe(lens, options, R, t, centre, scene.xyz, scene.normals)
+            if best is None or keep.size > best[0].size:
+                best = (keep, uv, alpha, R, t, centre, label)
+            if keep.size >= options.preferred_targets_per_image:
+                break
+            if attempt >= 50 and best[0].size >= options.min_targets_per_image:
+                break
+        keep, uv, alpha, R, t, centre, label = best
+        if keep.size < options.min_targets_per_image:
+            raise ValueError(
+                f"image {j + 1}: no pose in 1000 tries sees {options.min_targets_per_image} "
+                "targets; increase n_targets or fov_deg"
+            )
+        uv_obs = uv + rng.normal(0.0, options.noise_px, uv.shape)
+        uv_obs[:, 0] = np.clip(uv_obs[:, 0], -0.5, options.width - 0.5)
+        uv_obs[:, 1] = np.clip(uv_obs[:, 1], -0.5, options.height - 0.5)
+        images.append(
+            {
+                "id": f"IMG_{j + 1:04d}",
+                "R": R,
+                "t": t,
+                "centre": centre,
+                "orientation": label,
+                "targets": keep.copy(),
+                "uv": uv_obs,
+                "alpha": alpha,
+            }
+        )
+    return images
 
 
 # -- main ------------------------------------------------------------------------
@@ -317,12 +489,13 @@ def _observe(lens, options, R, t, centre, xyz, normals):
 def simulate_room(
     options: SimulationOptions | None = None, rng: np.random.Generator | None = None
 ) -> Simulation:
-    """Simulate an inside-out room calibration (the paper's experiment).
+    """Simulate a calibration: the paper's room (inside-out), a board or a 3D object.
 
     Parameters
     ----------
     options : SimulationOptions or None
-        What to simulate; default ``SimulationOptions()``.
+        What to simulate; default ``SimulationOptions()``. ``options.scene``
+        picks the target field (``"room"``, ``"board"``, ``"object3d"``).
     rng : numpy.random.Generator or None
         Random source; ``np.random.default_rng(options.seed)`` when None. The
         same seed gives identical output.
@@ -344,57 +517,19 @@ def simulate_room(
     if rng is None:
         rng = np.random.default_rng(options.seed)
     lens = build_lens(options)
-    xyz, normals, faces = _place_targets(options, rng)
+    build = _room_scene if options.scene == "room" else _object_scene
+    scene = build(options, lens, rng)
+    images = _shoot(options, lens, scene, rng)
+    return _assemble(options, lens, scene, images, rng)
+
+
+def _assemble(options, lens, scene: _Scene, images, rng) -> Simulation:
+    """Blunders, then the dataset, check point and truth documents."""
+    xyz, normals, faces = scene.xyz, scene.normals, scene.labels
     n_t = xyz.shape[0]
     target_ids = [f"T{i + 1:04d}" for i in range(n_t)]
-
-    lx, ly, _ = options.room_size_m
-    clear = options.wall_clearance_m
-    h_lo, h_hi = options.station_height_m
-    tilt = math.radians(options.tilt_deg)
-
-    images = []
-    for j in range(options.n_images):
-        portrait = j % 2 == 1
-        best = None
-        for attempt in range(1000):
-            centre = np.array([rng.uniform(clear, lx - clear), rng.uniform(clear, ly - clear), 0.0])
-            centre[2] = rng.uniform(h_lo, h_hi)
-            yaw = rng.uniform(-math.pi, math.pi)
-            pitch = rng.uniform(-tilt, tilt)
-            roll = (math.pi / 2 if portrait else 0.0) + math.radians(rng.normal(0.0, 2.0))
-            R = _rotation_world_from_cam(yaw, pitch, roll).T  # cam_from_world
-            t = -R @ centre
-            keep, uv, alpha = _observe(lens, options, R, t, centre, xyz, normals)
-            if best is None or keep.size > best[0].size:
-                best = (keep, uv, alpha, R, t, centre)
-            if keep.size >= options.preferred_targets_per_image:
-                break
-            if attempt >= 50 and best[0].size >= options.min_targets_per_image:
-                break
-        keep, uv, alpha, R, t, centre = best
-        if keep.size < options.min_targets_per_image:
-            raise ValueError(
-                f"image {j + 1}: no pose in 1000 tries sees {options.min_targets_per_image} "
-                "targets; increase n_targets or fov_deg"
-            )
-        uv_obs = uv + rng.normal(0.0, options.noise_px, uv.shape)
-        uv_obs[:, 0] = np.clip(uv_obs[:, 0], -0.5, options.width - 0.5)
-        uv_obs[:, 1] = np.clip(uv_obs[:, 1], -0.5, options.height - 0.5)
-        images.append(
-            {
-                "id": f"IMG_{j + 1:04d}",
-                "R": R,
-                "t": t,
-                "centre": centre,
-                "portrait": portrait,
-                "targets": keep.copy(),
-                "uv": uv_obs,
-                "alpha": alpha,
-            }
-        )
-
     blunders = _add_blunders(images, options, rng, target_ids)
+    sigma_mode = options.effective_sigma_mode
 
     # targets written to the dataset: those observed at least once
     n_obs_per_target = np.zeros(n_t, dtype=int)
@@ -402,16 +537,16 @@ def simulate_room(
         np.add.at(n_obs_per_target, img["targets"], 1)
     used = np.flatnonzero(n_obs_per_target > 0)
 
-    if options.sigma_mode == "fixed":
+    if sigma_mode == "fixed":
         approx = xyz.copy()
     else:
         approx = xyz + rng.normal(0.0, options.target_sigma_m, xyz.shape)
     ds_targets = []
     for i in used:
         entry: dict[str, Any] = {"id": target_ids[i], "xyz": [float(v) for v in approx[i]]}
-        if options.sigma_mode == "weighted":
+        if sigma_mode == "weighted":
             entry["sigma"] = float(options.target_sigma_m)
-        elif options.sigma_mode == "fixed":
+        elif sigma_mode == "fixed":
             entry["sigma"] = 0.0
         ds_targets.append(entry)
 
@@ -453,6 +588,8 @@ def simulate_room(
         "format": TRUTH_FORMAT,
         "units": "m",
         "camera": {"width": int(options.width), "height": int(options.height)},
+        "scene": options.scene,
+        "sigma_mode": sigma_mode,
         "lens": lens.to_dict(),
         "options": _jsonable(asdict(options)),
         "targets": [
@@ -473,7 +610,7 @@ def simulate_room(
                     "t": [float(v) for v in img["t"]],
                 },
                 "centre_world": [float(v) for v in img["centre"]],
-                "orientation": "portrait" if img["portrait"] else "landscape",
+                "orientation": img["orientation"],
             }
             for img in images
         ],

@@ -1,0 +1,540 @@
+"""Lens zoo: the default calibration over lens families, fields of view, image circles and scenes.
+
+A seeded list of simulated cases (issue 12) sweeps
+
+- lens families: pinhole + Brown, equidistant, equisolid, stereographic,
+  orthographic (the ``sphere`` kind), Kannala-Brandt, unified (catadioptric),
+  double sphere and FOV, each only over the fields of view it can reach
+  (60 to 360 degrees);
+- the image circle, from 0.25 x the short side (a small circular fisheye on a
+  large sensor) to 1.3 x the half diagonal (a full-frame fisheye whose circle
+  the sensor crops), or the diagonal filled (below 180 degrees);
+- principal point offsets up to 10% of the width / height;
+- some lenses with a moving entrance pupil and a smooth error field;
+- scenes: the paper's room (inside-out), a planar board, a 3D cube corner.
+
+Each case is calibrated exactly as ``gtsam-sphere calibrate dataset.json -o out``
+does with no options (the dataset goes through a file and the CLI's own
+parser builds the options), and once with the true lens known (the oracle,
+:mod:`gtsam_sphere.simulate.oracle`). Success is the CLI's exit 0: converged
+and ``statistics["trusted"]``. Accuracy is the 3D RMSE after a 7-parameter
+similarity (:mod:`gtsam_sphere.evaluate`) of the room's check points, or of
+the camera stations for the board and the cube corner (whose targets are
+exact control, so their check points carry no information), and its ratio to
+the oracle's. A failure of any kind is a row with the exception, never the
+end of the sweep.
+
+    python benchmarks/bench_lens_zoo.py --list
+    python benchmarks/bench_lens_zoo.py --quick [--json out.json]
+    python benchmarks/bench_lens_zoo.py --only double-sphere
+"""
+
+from __future__ import annotations
+
+import os
+
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")  # one core per case: timings comparable on a shared host
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import math  # noqa: E402
+import re  # noqa: E402
+import sys  # noqa: E402
+import tempfile  # noqa: E402
+import time  # noqa: E402
+from dataclasses import asdict, dataclass, field  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+# (family, full fields of view in degrees it is simulated at)
+FAMILIES: dict[str, tuple[float, ...]] = {
+    "pinhole": (60.0, 75.0, 90.0, 100.0, 120.0, 150.0),
+    "equidistant": (90.0, 120.0, 150.0, 180.0, 220.0, 250.0, 300.0, 360.0),
+    "equisolid": (60.0, 120.0, 180.0, 200.0, 240.0, 280.0, 340.0),
+    "stereographic": (90.0, 120.0, 150.0, 190.0, 240.0, 300.0, 340.0),
+    "sphere": (60.0, 90.0, 120.0, 170.0, 200.0, 250.0, 300.0, 360.0),
+    "kannala-brandt": (90.0, 120.0, 150.0, 190.0, 220.0, 250.0, 270.0),
+    "unified": (100.0, 150.0, 180.0, 220.0, 260.0, 300.0),
+    "double-sphere": (80.0, 140.0, 190.0, 240.0, 280.0, 330.0),
+    "fov": (70.0, 120.0, 170.0, 210.0, 260.0, 320.0),
+}
+SIZES = ((1600, 1200), (2000, 2000), (1280, 800))
+SCENES = ("room", "board", "object3d")
+# image circle radius: a fraction of the short side (< 1) or of the half diagonal (>= 1);
+# None fills the diagonal (only below 180 degrees)
+CIRCLES_NARROW = (None, None, 0.25, 0.4, 0.5, 1.0, 1.3)
+CIRCLES_WIDE = (0.25, 0.4, 0.5, 0.5, 1.0, 1.3)
+PP_OFFSETS = ((0.0, 0.0), (0.05, -0.03), (-0.1, 0.1), (0.1, 0.06), (-0.04, -0.1))
+# --quick: one case of each of these (family, fov), spread over scenes and circles
+QUICK = (
+    ("pinhole", 90.0),
+    ("equidistant", 250.0),
+    ("sphere", 200.0),
+    ("kannala-brandt", 150.0),
+    ("unified", 220.0),
+    ("double-sphere", 240.0),
+    ("fov", 170.0),
+    ("equisolid", 340.0),
+)
+
+
+def _family_options(family: str, fov: float) -> dict[str, float]:
+    """Shape parameters of a family for a field of view (all reach ``fov``)."""
+    if family == "pinhole":
+        return {"k1": -0.1, "k2": 0.02}
+    if family == "kannala-brandt":
+        return {"k1": 0.03, "k2": -0.008, "k3": 0.001}
+    if family == "unified":
+        # largest incidence acos(-1/xi) for xi > 1: keep ~10 degrees of headroom
+        if fov <= 180.0:
+            return {"xi": 0.9}
+        return {"xi": round(-1.0 / math.cos(math.radians(min(fov / 2 + 10.0, 178.0))), 4)}
+    if family == "double-sphere":
+        if fov <= 230.0:
+            return {"xi": -0.2, "alpha": 0.6}
+        if fov <= 300.0:
+            return {"xi": -0.1, "alpha": 0.52}
+        return {"xi": 0.05, "alpha": 0.5}
+    if family == "fov":
+        return {"omega": 0.8 if fov <= 120.0 else 1.5 if fov <= 220.0 else 2.2}
+    return {}
+
+
+@dataclass
+class Case:
+    """One benchmark case (everything needed to rebuild its simulation).
+
+    Attributes
+    ----------
+    id : str
+        ``NN-family-fov-scene-circle[-imp]``; ``rXs`` / ``rXd``: circle radius X times
+        the short side / the half diagonal, ``diag``: the diagonal filled, ``imp``:
+        non-central pupil and error field.
+    family : str
+        Lens kind (:data:`gtsam_sphere.simulate.LENS_KINDS`).
+    fov_deg : float
+        Full field of view (degrees).
+    width, height : int
+        Image size (pixels).
+    circle : float or None
+        Circle radius as a fraction of the short side (< 1) or of the half
+        diagonal (>= 1); None fills the diagonal.
+    pp_offset : tuple of float
+        Principal point offset from the image centre, fractions of width, height.
+    scene : str
+        ``"room"``, ``"board"`` or ``"object3d"``.
+    n_images : int
+    pupil_shift_m : float
+        Entrance pupil shift at 90 degrees (metres).
+    error_field_px : float
+        Smooth error field amplitude (pixels).
+    seed : int
+        Simulation seed.
+    lens_options : dict
+        Family shape parameters (``k1``, ``xi``, ``alpha``, ``omega``, ...).
+    """
+
+    id: str
+    family: str
+    fov_deg: float
+    width: int
+    height: int
+    circle: float | None  # fraction of the short side (< 1) / half diagonal (>= 1), None: diagonal
+    pp_offset: tuple[float, float]  # fraction of width, height
+    scene: str
+    n_images: int
+    pupil_shift_m: float
+    error_field_px: float
+    seed: int
+    lens_options: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def circle_radius_px(self) -> float | None:
+        """Radius (px) where ``fov / 2`` lands; None for a filled diagonal."""
+        if self.circle is None:
+            return None
+        if self.circle < 1.0:
+            return self.circle * min(self.width, self.height)
+        return self.circle * math.hypot(self.width, self.height) / 2.0
+
+    @property
+    def radius_over_short(self) -> float:
+        """Image circle radius over the short side (the half diagonal when filled)."""
+        r = self.circle_radius_px
+        if r is None:
+            r = math.hypot(self.width, self.height) / 2.0
+        return r / min(self.width, self.height)
+
+    def options(self):
+        """The :class:`~gtsam_sphere.simulate.SimulationOptions` of this case."""
+        from gtsam_sphere.simulate import SimulationOptions
+
+        lens_options = dict(self.lens_options)
+        lens_options["cx"] = (self.width - 1) / 2.0 + self.pp_offset[0] * self.width
+        lens_options["cy"] = (self.height - 1) / 2.0 + self.pp_offset[1] * self.height
+        return SimulationOptions(
+            lens=self.family,
+            fov_deg=self.fov_deg,
+            width=self.width,
+            height=self.height,
+            circle_radius_px=self.circle_radius_px,
+            lens_options=lens_options,
+            pupil_shift_m=self.pupil_shift_m,
+            error_field_px=self.error_field_px,
+            n_images=self.n_images,
+            scene=self.scene,
+            seed=self.seed,
+        )
+
+
+def build_cases(seed: int = 0) -> list[Case]:
+    """The seeded case list (same seed, same list).
+
+    Parameters
+    ----------
+    seed : int
+        Seeds the choices of image size, circle, principal point offset and
+        imperfections, and (``1000 * seed + index``) each simulation.
+
+    Returns
+    -------
+    cases : list of Case
+        One per (family, field of view) of :data:`FAMILIES`; scenes cycle
+        so each family meets all three.
+    """
+    rng = np.random.default_rng(seed)
+    cases: list[Case] = []
+    for k, (family, fovs) in enumerate(FAMILIES.items()):
+        for j, fov in enumerate(fovs):
+            i = len(cases)
+            scene = SCENES[(j + k) % len(SCENES)]
+            width, height = SIZES[int(rng.integers(len(SIZES)))]
+            circles = CIRCLES_NARROW if fov < 180.0 else CIRCLES_WIDE
+            circle = circles[int(rng.integers(len(circles)))]
+            pp = PP_OFFSETS[int(rng.integers(len(PP_OFFSETS)))]
+            imperfect = rng.uniform() < 0.3
+            n_images = int(rng.integers(20, 31)) if scene == "room" else int(rng.integers(15, 21))
+            # r<x>s: circle radius x times the short side; r<x>d: x times the half diagonal
+            tag = "diag" if circle is None else f"r{circle:g}" + ("s" if circle < 1.0 else "d")
+            cases.append(
+                Case(
+                    id=f"{i:02d}-{family}-{fov:g}-{scene}-{tag}" + ("-imp" if imperfect else ""),
+                    family=family,
+                    fov_deg=fov,
+                    width=width,
+                    height=height,
+                    circle=circle,
+                    pp_offset=pp,
+                    scene=scene,
+                    n_images=n_images,
+                    pupil_shift_m=round(float(rng.uniform(0.001, 0.004)), 4) if imperfect else 0.0,
+                    error_field_px=round(float(rng.uniform(0.5, 2.0)), 2) if imperfect else 0.0,
+                    seed=1000 * seed + i,
+                    lens_options=_family_options(family, fov),
+                )
+            )
+    return cases
+
+
+def quick_cases(cases: list[Case]) -> list[Case]:
+    """The ``--quick`` subset: the cases of the (family, fov) pairs in :data:`QUICK`.
+
+    Parameters
+    ----------
+    cases : list of Case
+        From :func:`build_cases`.
+
+    Returns
+    -------
+    subset : list of Case
+        Eight cases over every scene and several circles (a few minutes in all).
+    """
+    return [c for c in cases if (c.family, c.fov_deg) in QUICK]
+
+
+# -- one case --------------------------------------------------------------------
+
+
+def _default_calibration(dataset_path: Path, out_path: Path, progress):
+    """``gtsam-sphere calibrate DATASET -o OUT`` without options, as the CLI runs it.
+
+    Returns the calibration and the CLI's exit status (0 trusted, 1 not).
+    """
+    from gtsam_sphere import cli
+    from gtsam_sphere.calibrate import calibrate
+    from gtsam_sphere.dataset import load_dataset
+
+    args = cli.build_parser().parse_args(["calibrate", str(dataset_path), "-o", str(out_path)])
+    dataset = load_dataset(args.dataset)
+    calib = calibrate(dataset, cli._options_from_args(args), progress)
+    calib.save(args.output)
+    status = 0 if calib.statistics.get("trusted", calib.statistics["converged"]) else 1
+    return calib, status
+
+
+def _stations(calib) -> tuple[list[str], np.ndarray]:
+    """Adjusted camera centres (world frame): ``-R^T t`` per image."""
+    R = np.asarray(calib.cam_from_world_R, float)
+    t = np.asarray(calib.cam_from_world_t, float)
+    return list(calib.image_ids), -np.einsum("kji,kj->ki", R, t)
+
+
+def _rmse_3d(calib, sim, what: str) -> float:
+    """3D RMSE (metres) after a similarity: check points or camera stations."""
+    from gtsam_sphere.evaluate import evaluate_calibration, evaluate_checkpoints
+
+    if what == "checkpoints":
+        ids = [t["id"] for t in sim.checkpoints["targets"]]
+        xyz = np.array([t["xyz"] for t in sim.checkpoints["targets"]], float)
+        return float(evaluate_calibration(calib, ids, xyz).rmse_3d)
+    ids = [im["id"] for im in sim.truth["images"]]
+    xyz = np.array([im["centre_world"] for im in sim.truth["images"]], float)
+    adj_ids, adj_xyz = _stations(calib)
+    return float(evaluate_checkpoints(adj_ids, adj_xyz, ids, xyz).rmse_3d)
+
+
+def _axis_scale_px(lens) -> float:
+    """The true lens's principal distance: image radius per radian at the axis (px)."""
+    eps = 1e-5
+    uv = lens.project([[math.sin(eps), 0.0, math.cos(eps)], [-math.sin(eps), 0.0, math.cos(eps)]])
+    return float(abs(uv[0, 0] - uv[1, 0]) / (2.0 * eps))
+
+
+def run_case(case: Case, workdir: Path, verbose: bool = False) -> dict:
+    """Simulate, calibrate with the defaults and with the oracle; one row of the table.
+
+    Parameters
+    ----------
+    case : Case
+    workdir : pathlib.Path
+        The simulated files and the calibration go to ``workdir / case.id``.
+    verbose : bool
+        Echo the calibration's progress lines on standard error.
+
+    Returns
+    -------
+    row : dict
+        ``success`` (the CLI's exit 0), ``n_obs``, ``rmse_3d_m`` and
+        ``oracle_rmse_3d_m`` (metres, of ``metric``: ``"checkpoints"`` or
+        ``"stations"``), ``ratio``, ``time_s`` (default calibration only),
+        ``time_per_1k_obs_s``, ``hypothesis``, ``pp_error_px``,
+        ``c_error_pct`` (principal distance against the true lens's image
+        radius per radian at the axis), ``distrust``; ``error`` /
+        ``oracle_error`` (``"Type: message"``) when something raised.
+    """
+    from gtsam_sphere.simulate import simulate_room, write_simulation
+    from gtsam_sphere.simulate.oracle import oracle_calibration
+
+    row: dict = {
+        "id": case.id,
+        "family": case.family,
+        "fov_deg": case.fov_deg,
+        "radius_over_short": round(case.radius_over_short, 3),
+        "pp_offset_pct": [round(100 * v, 1) for v in case.pp_offset],
+        "scene": case.scene,
+        "size": f"{case.width}x{case.height}",
+        "imperfect": bool(case.pupil_shift_m or case.error_field_px),
+        "case": asdict(case),
+        "success": False,
+    }
+    lines: list[str] = []
+
+    def progress(line: str) -> None:
+        lines.append(line)
+        if verbose:
+            print(f"    {line}", file=sys.stderr, flush=True)
+
+    try:
+        sim = simulate_room(case.options())
+        stats = sim.truth["statistics"]
+        row["n_obs"] = int(stats["n_observations"])
+        row["max_incidence_deg"] = round(float(stats["max_incidence_deg"]), 2)
+        exact = all(t.get("sigma") == 0.0 for t in sim.dataset["targets"])
+        row["metric"] = "stations" if exact else "checkpoints"
+        paths = write_simulation(sim, workdir / case.id)
+        t0 = time.perf_counter()
+        calib, status = _default_calibration(
+            paths["dataset"], workdir / case.id / "calibration.json", progress
+        )
+        row["time_s"] = time.perf_counter() - t0
+        row["time_per_1k_obs_s"] = row["time_s"] / max(row["n_obs"], 1) * 1000.0
+        st = calib.statistics
+        row["exit_status"] = status
+        row["success"] = status == 0
+        row["converged"] = bool(st["converged"])
+        row["distrust"] = list(st.get("distrust", []))
+        row["rms_px"] = float(st["rms_px"])
+        row["model"] = str(calib.model)
+        hyp = next((ln for ln in lines if "initial lens hypothesis" in ln), "")
+        m = re.search(r"hypothesis:\s*([^,]+)", hyp)
+        row["hypothesis"] = m.group(1).strip() if m else "?"
+        cam, lens = calib.camera, sim.lens
+        row["pp_error_px"] = float(math.hypot(cam.xp - lens.cx, cam.yp - lens.cy))
+        c_true = _axis_scale_px(lens)
+        row["c_error_pct"] = float(100.0 * (cam.c - c_true) / c_true)
+        row["rmse_3d_m"] = _rmse_3d(calib, sim, row["metric"])
+    except Exception as exc:  # noqa: BLE001 - a failed case is a row, never the end
+        row["error"] = f"{type(exc).__name__}: {' '.join(str(exc).split())}"[:300]
+        return row
+    try:
+        oracle = oracle_calibration(sim, case.seed)
+        row["oracle_rmse_3d_m"] = _rmse_3d(oracle, sim, row["metric"])
+        row["ratio"] = row["rmse_3d_m"] / max(row["oracle_rmse_3d_m"], 1e-15)
+    except Exception as exc:  # noqa: BLE001
+        row["oracle_error"] = f"{type(exc).__name__}: {' '.join(str(exc).split())}"[:300]
+    return row
+
+
+# -- output ----------------------------------------------------------------------
+
+
+def _fmt(value, spec: str, missing: str = "-") -> str:
+    if value is None or (isinstance(value, float) and not math.isfinite(value)):
+        return missing
+    return format(value, spec)
+
+
+def print_table(rows: list[dict]) -> None:
+    """Print the Markdown table of the rows, the failures and the summary lines.
+
+    Parameters
+    ----------
+    rows : list of dict
+        From :func:`run_case`.
+    """
+    print(
+        "| case | family | fov | r/short | pp % | scene | n_obs | ok | 3D mm (of) | oracle mm "
+        "| ratio | time s | s/1k obs | hypothesis | dpp px | dc % |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    for r in rows:
+        what = {"checkpoints": "cp", "stations": "stn"}.get(r.get("metric", ""), "")
+        rmse = r.get("rmse_3d_m")
+        orc = r.get("oracle_rmse_3d_m")
+        ok = "yes" if r["success"] else ("ERR" if "error" in r else "no")
+        print(
+            f"| {r['id']} | {r['family']} | {r['fov_deg']:g} | {r['radius_over_short']:.2f} "
+            f"| {r['pp_offset_pct'][0]:+g},{r['pp_offset_pct'][1]:+g} | {r['scene']} "
+            f"| {r.get('n_obs', '-')} | {ok} "
+            f"| {_fmt(None if rmse is None else rmse * 1e3, '.3f')} {what} "
+            f"| {_fmt(None if orc is None else orc * 1e3, '.3f')} | {_fmt(r.get('ratio'), '.2f')} "
+            f"| {_fmt(r.get('time_s'), '.1f')} | {_fmt(r.get('time_per_1k_obs_s'), '.2f')} "
+            f"| {r.get('hypothesis', '-')} | {_fmt(r.get('pp_error_px'), '.2f')} "
+            f"| {_fmt(r.get('c_error_pct'), '+.3f')} |"
+        )
+    for r in rows:
+        if "error" in r:
+            print(f"  {r['id']}: {r['error']}")
+        elif not r["success"]:
+            print(
+                f"  {r['id']}: not trusted: {'; '.join(r.get('distrust', [])) or 'not converged'}"
+            )
+        if "oracle_error" in r:
+            print(f"  {r['id']}: oracle failed: {r['oracle_error']}")
+    for line in summary_lines(rows):
+        print(line)
+
+
+def summary_lines(rows: list[dict]) -> list[str]:
+    """Success rate, worst ratio to the oracle, median and worst time per 1000 observations.
+
+    Parameters
+    ----------
+    rows : list of dict
+        From :func:`run_case`.
+
+    Returns
+    -------
+    lines : list of str
+    """
+    if not rows:
+        return ["no cases"]
+    n_ok = sum(r["success"] for r in rows)
+    out = [f"success: {n_ok}/{len(rows)} ({100.0 * n_ok / len(rows):.0f}%)"]
+    ratios = [(r["ratio"], r["id"]) for r in rows if math.isfinite(r.get("ratio", math.nan))]
+    if ratios:
+        worst = max(ratios)
+        out.append(f"worst ratio to the oracle: {worst[0]:.2f} ({worst[1]})")
+    per_k = [(r["time_per_1k_obs_s"], r["id"]) for r in rows if "time_per_1k_obs_s" in r]
+    if per_k:
+        med = float(np.median([v for v, _ in per_k]))
+        worst_t = max(per_k)
+        out.append(
+            f"time per 1000 observations: median {med:.2f} s; worst {worst_t[0]:.2f} s "
+            f"({worst_t[0] / med:.1f}x the median, {worst_t[1]})"
+        )
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run (or list) the lens zoo.
+
+    Parameters
+    ----------
+    argv : list of str, optional
+        Command-line arguments; default ``sys.argv[1:]``.
+
+    Returns
+    -------
+    status : int
+        0 (failed cases are rows of the table, not an exit status).
+    """
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seed", type=int, default=0, help="seed of the case list (default 0)")
+    ap.add_argument("--quick", action="store_true", help=f"only {len(QUICK)} diverse cases")
+    ap.add_argument("--only", default=None, metavar="SUBSTRING", help="cases whose id has it")
+    ap.add_argument("--list", action="store_true", help="list the cases and exit")
+    ap.add_argument("--json", default=None, metavar="OUT", help="save the rows as JSON")
+    ap.add_argument("--verbose", action="store_true", help="echo calibration progress")
+    ap.add_argument("--workdir", default=None, help="keep the simulated files here")
+    args = ap.parse_args(argv)
+
+    cases = build_cases(args.seed)
+    if args.quick:
+        cases = quick_cases(cases)
+    if args.only:
+        cases = [c for c in cases if args.only in c.id]
+    if args.list:
+        for c in cases:
+            print(
+                f"{c.id}: {c.width}x{c.height}, r/short {c.radius_over_short:.2f}, "
+                f"pp {100 * c.pp_offset[0]:+g}%,{100 * c.pp_offset[1]:+g}%, "
+                f"{c.n_images} images, pupil {c.pupil_shift_m:g} m, field {c.error_field_px:g} px, "
+                f"lens {c.lens_options}"
+            )
+        print(f"{len(cases)} cases")
+        return 0
+
+    rows: list[dict] = []
+    t_all = time.perf_counter()
+    with tempfile.TemporaryDirectory(prefix="lens_zoo_") as tmp:
+        workdir = Path(args.workdir) if args.workdir else Path(tmp)
+        for k, case in enumerate(cases, start=1):
+            print(f"[{k}/{len(cases)}] {case.id} ...", file=sys.stderr, flush=True)
+            row = run_case(case, workdir, args.verbose)
+            rows.append(row)
+            state = "ok" if row["success"] else row.get("error", "not trusted")
+            print(
+                f"[{k}/{len(cases)}] {case.id}: {state}, {row.get('n_obs', '?')} obs, "
+                f"{_fmt(row.get('time_s'), '.1f', '?')} s, ratio {_fmt(row.get('ratio'), '.2f')}",
+                file=sys.stderr,
+                flush=True,
+            )
+            if args.json:  # saved after every case: a long sweep keeps what it has done
+                _save(args.json, rows)
+    print_table(rows)
+    print(f"total wall time {time.perf_counter() - t_all:.0f} s for {len(rows)} cases")
+    if args.json:
+        _save(args.json, rows)
+    return 0
+
+
+def _save(path: str, rows: list[dict]) -> None:
+    doc = {"format": "gtsam-sphere/bench-lens-zoo@1", "rows": rows, "summary": summary_lines(rows)}
+    Path(path).write_text(json.dumps(doc, indent=1, default=str))
+
+
+if __name__ == "__main__":
+    sys.exit(main())
