@@ -24,6 +24,12 @@ c. ``fish_1`` / ``fish_2`` real images: chessboard detection (6x8 inner
    started from a rough guess (f of our lens-unknown initialisation, centred
    principal point) and labelled so.
 
+e. ``opencv_omnidir_stereo``: each camera of the real catadioptric rig alone, ours
+   and ``cv2.omnidir.calibrate`` (Mei's unified model, flags 0 and the criteria of
+   the data README; needs opencv-contrib, else the README's figures only), all views
+   and leave-one-view-out over the README's 8 frames (00 05 11 16 22 27 33 38), each
+   held-out view resected with the calibration fixed.
+
 d. periphery recovery (``gtsam-sphere detect --recover``) on the fish images:
    corners it adds, and an occlusion check (a column of corners painted over so
    the full-board detection fails: how many visible corners the partial-board
@@ -39,7 +45,7 @@ it) and skip the covariance; they are only starting values.
 
     python benchmarks/holdout.py [--model radial+knn [brown+knn ...]] [--quick]
         [--control-sigma exact auto 0.0005] [--max-views N]
-        [--only ov_plane,opencv,fish,recovery] [--json OUT.json]
+        [--only ov_plane,opencv,omnidir,fish,recovery] [--json OUT.json]
 
 ``--control-sigma``: each model runs with the board's nominal coordinates taken as
 exact (``exact``: ``gtsam-sphere calibrate --exact-targets``), with the defaults
@@ -78,6 +84,10 @@ OCAMCALIB_FISH1_RMS = 0.241
 FISH = {"fish_1": 0.0325, "fish_2": 0.117}  # square side (m), checkerboard_sizes.txt
 FISH_BOARD = "chessboard:6x8:{square}"  # 7x9 squares, not the 5x7 of checkerboard_sizes.txt
 MAX_INCIDENCE_OPENCV_DEG = 85.0
+# opencv_omnidir_stereo: the data README's held-out frames and mono reference figures
+OMNI_HELD_FRAMES = ("00", "05", "11", "16", "22", "27", "33", "38")
+OMNI_MONO_RMS = {"cam0": 0.4390, "cam1": 0.4066}
+OMNI_MONO_VIEWS = {"cam0": "37 of 39", "cam1": "36 of 39"}
 
 _T0 = time.perf_counter()
 
@@ -268,10 +278,16 @@ def cv_residuals(obj, img, K, D, rvec, tvec) -> np.ndarray:
     return img.reshape(-1, 2) - proj.reshape(-1, 2)
 
 
-def cv_resect(obj, img, K, D, rvec0=None, tvec0=None):
-    """Held-out pose with OpenCV's calibration fixed: ``cv2.fisheye.solvePnP``, then
-    Levenberg-Marquardt on the raw-pixel reprojection error (least squares, OpenCV's
-    own calibration criterion). Returns the residuals (N, 2) px (NaN on failure)."""
+def cv_resect(obj, img, K, D, rvec0=None, tvec0=None, residuals=None):
+    """Held-out pose with OpenCV's calibration fixed: ``cv2.fisheye.solvePnP`` (or the
+    given start), then Levenberg-Marquardt on the raw-pixel reprojection error (least
+    squares, OpenCV's own calibration criterion). ``residuals(obj, img, rvec, tvec)``
+    replaces the fisheye model's. Returns the residuals (N, 2) px (NaN on failure)."""
+    if residuals is None:
+
+        def residuals(o, i, rv, tv):
+            return cv_residuals(o, i, K, D, rv, tv)
+
     if rvec0 is None:
         try:
             ok, rvec, tvec = cv2.fisheye.solvePnP(obj, img, K, D)
@@ -285,7 +301,7 @@ def cv_resect(obj, img, K, D, rvec0=None, tvec0=None):
     lam = 1e-3
 
     def resid(p):
-        return cv_residuals(obj, img, K, D, p[:3].reshape(3, 1), p[3:].reshape(3, 1)).ravel()
+        return residuals(obj, img, p[:3].reshape(3, 1), p[3:].reshape(3, 1)).ravel()
 
     e = resid(x)
     cost = float(e @ e)
@@ -331,7 +347,77 @@ def cv_leave_one_out(per_view, held, size, flags=_CV_FLAGS, K0=None, select=None
 
 
 # --------------------------------------------------------------------------------------
-# the three sections
+# OpenCV omnidir (Mei's unified model; opencv-contrib only)
+# --------------------------------------------------------------------------------------
+
+_OMNI_CRITERIA = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-8)
+
+
+def omni_calibrate(obj, img, size):
+    """``cv2.omnidir.calibrate`` with the data README's settings (flags 0, 200 / 1e-8).
+
+    Returns ``(K, xi, D, {view index: (rvec, tvec)})`` for the views OpenCV kept, or
+    None when it fails.
+    """
+    try:
+        _, K, xi, D, rvecs, tvecs, idx = cv2.omnidir.calibrate(
+            obj, img, size, np.eye(3), np.zeros((1, 1)), np.zeros((1, 4)), 0, _OMNI_CRITERIA
+        )
+    except cv2.error:
+        return None
+    used = np.ravel(idx).astype(int).tolist()
+    return K, float(np.ravel(xi)[0]), D, dict(zip(used, zip(rvecs, tvecs)))
+
+
+def omni_residuals(obj, img, K, xi, D, rvec, tvec) -> np.ndarray:
+    """Raw-pixel residuals (N, 2), measured minus ``cv2.omnidir.projectPoints``."""
+    proj, _ = cv2.omnidir.projectPoints(obj, rvec, tvec, K, xi, D)
+    return img.reshape(-1, 2) - proj.reshape(-1, 2)
+
+
+def omni_resect(obj, img, K, xi, D):
+    """Held-out pose with the omnidir calibration fixed: PnP on the undistorted
+    (perspective) points, then LM on the raw-pixel error (:func:`cv_resect`)."""
+    und = cv2.omnidir.undistortPoints(img, K, D, np.array([[xi]]), np.eye(3))
+    ok, rvec, tvec = cv2.solvePnP(obj, und, np.eye(3), None)
+    if not ok:
+        return np.full((obj.shape[1], 2), np.nan)
+
+    def residuals(o, i, rv, tv):
+        return omni_residuals(o, i, K, xi, D, rv, tv)
+
+    return cv_resect(obj, img, K, D, rvec, tvec, residuals)
+
+
+def omni_rows(per_view, held, size) -> list[dict]:
+    """OpenCV omnidir: all-view RMS (the views it keeps) and leave-one-view-out rows."""
+    if not hasattr(cv2, "omnidir"):
+        log("cv2.omnidir is absent (opencv-contrib-python-headless provides it): skipped")
+        return [{"method": "OpenCV omnidir", "failed": ["cv2.omnidir absent"]}]
+    obj, img = cv_views(per_view)
+    fit = omni_calibrate(obj, img, size)
+    if fit is None:
+        return [{"method": "OpenCV omnidir", "failed": ["calibrate failed"]}]
+    K, xi, D, poses = fit
+    all_r = np.concatenate(
+        [omni_residuals(obj[k], img[k], K, xi, D, *poses[k]) for k in sorted(poses)]
+    )
+    loo = {"residuals": [], "ids": [], "failed": []}
+    for k in held:
+        others = [j for j in range(len(obj)) if j != k]
+        f = omni_calibrate([obj[j] for j in others], [img[j] for j in others], size)
+        if f is None:
+            loo["failed"].append((k, "cv2.omnidir.calibrate failed"))
+            loo["residuals"].append(np.full((obj[k].shape[1], 2), np.nan))
+        else:
+            loo["residuals"].append(omni_resect(obj[k], img[k], f[0], f[1], f[2]))
+        loo["ids"].append(k)
+    label = f"OpenCV omnidir (Mei; all-view RMS over the {len(poses)} views it keeps)"
+    return [_loo_row(label, rms(all_r), loo)]
+
+
+# --------------------------------------------------------------------------------------
+# the sections
 # --------------------------------------------------------------------------------------
 
 
@@ -419,16 +505,26 @@ def section_ov_plane(variants, seed) -> dict:
     return {"rows": rows}
 
 
-def section_leave_one_out(name, dataset, variants, max_views, seed) -> dict:
-    """All-view RMS and leave-one-view-out held-out RMS: ours and ``cv2.fisheye``."""
+def section_leave_one_out(
+    name, dataset, variants, max_views, seed, opencv="fisheye", held_ids=None
+) -> dict:
+    """All-view RMS and leave-one-view-out held-out RMS: ours and OpenCV's
+    ``cv2.fisheye`` (or ``cv2.omnidir`` with ``opencv="omnidir"``). ``held_ids``: the
+    image ids to hold out (default: ``max_views`` evenly spread, or all)."""
     log(f"{name}: initialising {len(dataset.image_ids)} images")
     init = initialise(dataset, seed)
     ds = init.dataset
     per_view = views(ds)
     held = held_out_indices(len(ds.image_ids), max_views)
+    if held_ids is not None:
+        held = [ds.image_ids.index(i) for i in held_ids if i in ds.image_ids]
     size = (ds.width, ds.height)
     rows = []
     t0 = time.perf_counter()
+    if opencv == "omnidir":
+        rows += omni_rows(per_view, held, size)
+        log(f"{name} OpenCV omnidir: done ({time.perf_counter() - t0:.1f} s)")
+        return _our_loo_rows(name, init, variants, held, seed, rows)
     obj, img = cv_views(per_view)
     # OpenCV's own initialisation first; where it fails or diverges (fish_1, fish_2), again
     # from a rough guess: f from our lens-unknown initialisation, principal point centred
@@ -458,6 +554,12 @@ def section_leave_one_out(name, dataset, variants, max_views, seed) -> dict:
         break
     else:
         rows.append({"method": "OpenCV fisheye (KB)", "failed": ["calibrate failed/diverged"]})
+    return _our_loo_rows(name, init, variants, held, seed, rows)
+
+
+def _our_loo_rows(name, init, variants, held, seed, rows) -> dict:
+    """Our variants' all-view and leave-one-view-out rows appended to ``rows``."""
+    ds = init.dataset
     for model, control_sigma in variants:
         t0 = time.perf_counter()
         name_v = variant_label(model, control_sigma)
@@ -642,8 +744,8 @@ def main(argv=None) -> int:
     parser.add_argument("--quick", action="store_true", help="hold out 6 views per set")
     parser.add_argument(
         "--only",
-        default="ov_plane,opencv,fish,recovery",
-        help="sections: ov_plane,opencv,fish,recovery",
+        default="ov_plane,opencv,omnidir,fish,recovery",
+        help="sections: ov_plane,opencv,omnidir,fish,recovery",
     )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--json", default=None, help="also write the numbers to this file")
@@ -680,6 +782,22 @@ def main(argv=None) -> int:
             sec,
             ("OpenCV fisheye (data README)", OPENCV_LEFT_RMS),
         )
+    if "omnidir" in sections:
+        from gtsam_sphere.dataset import load_rig_dataset, split_rig
+
+        rig = split_rig(load_rig_dataset(DATA / "opencv_omnidir_stereo.dataset.json"))
+        for cam, ds in rig.items():
+            held_ids = [i for i in ds.image_ids if i.split("_")[-1] in OMNI_HELD_FRAMES]
+            sec = section_leave_one_out(
+                f"omnidir {cam}", ds, variants, None, args.seed, "omnidir", held_ids
+            )
+            results[f"omnidir_{cam}"] = sec
+            print_loo(
+                f"e. opencv_omnidir_stereo {cam} (one camera of the rig, alone)",
+                sec,
+                (f"OpenCV omnidir (data README, {OMNI_MONO_VIEWS[cam]} views)",
+                 OMNI_MONO_RMS[cam]),
+            )
     if "fish" in sections:
         for folder, square in FISH.items():
             if not (DATA / "images" / folder).exists():

@@ -872,7 +872,17 @@ def _result(dataset, problem, adj, correction, history, options, n_input_images)
         )
     )
     redundancy = 2 * n_obs + 3 * n_priors + problem.n_datum_constraints() - problem.n_unknowns()
-    outlier = r_model > 5.0 * sigma
+    # a blunder is gross relative to its neighbours, not only to the global sigma: a
+    # residual beyond 5 sigma that its image neighbours share (a lens or board error the
+    # model does not hold, large at the border of a wide lens) is systematic, reported
+    # as such and not listed as an outlier
+    gross = r_model > 5.0 * sigma
+    outlier = gross.copy()
+    if gross.any():
+        from .correct import consistent_with_neighbours
+
+        outlier &= ~consistent_with_neighbours(dataset.uv_px, res_model)
+    systematic = gross & ~outlier
     # beyond the loss threshold: Huber's weight < 1 there; Cauchy's weight < 1/2
     down = np.flatnonzero(r_model > problem.noise.loss_threshold * sigma)
     down = down[np.argsort(-r_model[down])]
@@ -889,6 +899,7 @@ def _result(dataset, problem, adj, correction, history, options, n_input_images)
         "n_targets": int(len(used_targets)),
         "n_downweighted": int(len(down)),
         "n_outliers": int(outlier.sum()),
+        "n_systematic": int(systematic.sum()),
         "sigma_px": float(sigma),
         "loss": adj.loss or str(problem.noise.loss),
         "loss_threshold": float(problem.noise.loss_threshold),

@@ -106,9 +106,10 @@ def _print_statistics(stats: dict) -> None:
         ("observations used / rejected", f"{stats['n_observations']} / {stats['n_rejected']}"),
         ("images used / skipped", f"{stats['n_images']} / {stats['n_images_skipped']}"),
         (
-            "down-weighted / outliers (>5 sigma)",
+            "down-weighted / outliers (>5 sigma, unlike neighbours)",
             f"{stats['n_downweighted']} / {stats['n_outliers']}",
         ),
+        ("systematic (>5 sigma, like neighbours)", f"{stats.get('n_systematic', 0)}"),
         ("sigma (px)", f"{stats['sigma_px']:.4f}"),
         ("weighted sum of squares", f"{stats['weighted_sum_squares']:.4e}"),
         ("redundancy", f"{stats['redundancy']}"),
