@@ -21,12 +21,13 @@ See ``docs/conventions.md`` for frames and the unprojection ambiguity past
 
 from __future__ import annotations
 
-import enum
 import math
 from dataclasses import dataclass, field
 from typing import Protocol
 
 import numpy as np
+
+from ._compat import StrEnum
 
 BROWN_TERMS: tuple[str, ...] = ("k1", "k2", "k3", "p1", "p2", "a1", "a2")
 RADIAL_TERMS: tuple[str, ...] = ("g3", "g5", "g7", "g9", "g11", "g13")
@@ -37,7 +38,7 @@ ALPHA0_RAD = math.pi / 2
 FOLD_HORIZON = 1e6
 
 
-class Model(enum.StrEnum):
+class Model(StrEnum):
     """Camera models ``calibrate`` can estimate.
 
     ``sphere``: the paper's sphere mapping, ``xp, yp, c`` only.

@@ -36,13 +36,13 @@ code                       poses  fatal when
 
 from __future__ import annotations
 
-import enum
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
+from ._compat import StrEnum
 from .dataset import Dataset, DatasetError
 
 __all__ = [
@@ -55,7 +55,7 @@ __all__ = [
 ]
 
 
-class ProblemCode(enum.StrEnum):
+class ProblemCode(StrEnum):
     """Kinds of geometric weakness found by :func:`check_geometry`."""
 
     SINGLE_IMAGE = "single-image"

@@ -24,12 +24,12 @@ corrections means building new blocks, which costs milliseconds
 
 from __future__ import annotations
 
-import enum
 from dataclasses import dataclass, field
 
 import gtsam
 import numpy as np
 
+from ._compat import StrEnum
 from .camera import sphere_residual
 
 
@@ -46,7 +46,7 @@ def point_key(j: int) -> int:
 INTRINSICS_KEY = gtsam.symbol("k", 0)
 
 
-class Loss(enum.StrEnum):
+class Loss(StrEnum):
     """Robust M-estimators, applied per observation to the whitened residual norm."""
 
     L2 = "l2"
@@ -461,7 +461,7 @@ class NormalOffsetFactor:
         return np.array([self.normal @ (p - self.p0) / self.sigma])
 
 
-class Datum(enum.StrEnum):
+class Datum(StrEnum):
     """How the network's datum is defined."""
 
     CONTROL = "control"  # exact (sigma 0) or weighted control points
