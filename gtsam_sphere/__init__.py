@@ -9,11 +9,14 @@ Pipeline, one module per stage: :mod:`dataset` (data contract) ->
 from .calibration import Calibration, load_calibration
 from .camera import Model, SphereCamera
 from .dataset import Dataset, DatasetError, load_checkpoints, load_dataset
+from .errors import GtsamSphereError, InputError
 
 __all__ = [
     "Calibration",
     "Dataset",
     "DatasetError",
+    "GtsamSphereError",
+    "InputError",
     "Model",
     "SphereCamera",
     "load_calibration",

@@ -7,7 +7,7 @@ enough control in each block). :func:`check_geometry` looks for the classic
 failures and returns one :class:`Problem` per finding, naming the images or
 targets concerned and what to capture next; :func:`raise_if_degenerate`
 turns the fatal ones into a :class:`DegenerateGeometryError` (a
-:class:`~gtsam_sphere.dataset.DatasetError`, so the command line exits 2).
+:class:`~gtsam_sphere.errors.InputError`, so the command line exits 2).
 
 The checks are pure functions of the dataset (and, for the pose-dependent
 ones, of the initial ``cam_from_world`` poses); nothing is adjusted.
@@ -43,7 +43,8 @@ from typing import Any
 import numpy as np
 
 from ._compat import StrEnum
-from .dataset import Dataset, DatasetError
+from .dataset import Dataset
+from .errors import DegenerateGeometryError
 
 __all__ = [
     "DegenerateGeometryError",
@@ -95,21 +96,6 @@ class Problem:
 
     def __str__(self) -> str:
         return f"[{self.code}] {self.message} -> {self.advice}"
-
-
-class DegenerateGeometryError(DatasetError):
-    """The dataset's geometry cannot calibrate the camera; ``problems`` lists why.
-
-    Attributes
-    ----------
-    problems : list of Problem
-        The fatal problems (message and advice of each are in the text).
-    """
-
-    def __init__(self, problems: Sequence[Problem]):
-        self.problems = list(problems)
-        text = "; ".join(f"{p.message} ({p.code}; advice: {p.advice})" for p in self.problems)
-        super().__init__(f"degenerate calibration geometry: {text}")
 
 
 def _names(ids: Sequence[str], limit: int = 6) -> str:

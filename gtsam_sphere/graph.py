@@ -31,6 +31,7 @@ import numpy as np
 
 from ._compat import StrEnum
 from .camera import sphere_residual
+from .errors import DatasetError
 
 
 def pose_key(i: int) -> int:
@@ -658,7 +659,7 @@ class BundleProblem:
             pts = self.target_xyz[ctrl]
             spread = np.linalg.svd(pts - pts.mean(0), compute_uv=False) if len(ctrl) >= 3 else 0
             if len(ctrl) < 3 or spread[1] < 1e-6 * max(spread[0], 1e-12):
-                raise ValueError(
+                raise DatasetError(
                     f"the targets with a sigma ({len(ctrl)} observed) do not define a datum: "
                     "give sigma to at least 3 non-collinear targets, or to none (free network)"
                 )

@@ -50,6 +50,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .errors import InitialisationError
 from .p3p import angular_errors_rad, ransac_pose
 
 __all__ = ["MAPPINGS", "InitialisationResult", "bearings_from_pixels", "initialize_poses"]
@@ -379,7 +380,7 @@ def initialize_poses(
             )
     eligible = np.flatnonzero(counts >= min_inliers)
     if eligible.size == 0:
-        raise ValueError(
+        raise InitialisationError(
             f"no image can be initialised: every one of the {n_images} images has fewer "
             f"than {min_inliers} observations (counts: {counts.tolist()})"
         )
@@ -452,7 +453,7 @@ def initialize_poses(
     say(f"initialised {int(ok.sum())} of {n_images} images ({len(failures)} failed)")
     if not ok.any():
         detail = "; ".join(f"image {k}: {v}" for k, v in sorted(failures.items())[:10])
-        raise ValueError(
+        raise InitialisationError(
             f"no image could be initialised with the best lens hypothesis "
             f"({mapping}, f = {f_px:.1f} px): {detail}"
         )

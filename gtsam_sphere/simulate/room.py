@@ -34,6 +34,7 @@ from typing import Any
 
 import numpy as np
 
+from ..errors import OptionsError
 from .lenses import ErrorField, NonCentral, make_lens
 
 __all__ = [
@@ -374,7 +375,7 @@ def simulate_room(
                 break
         keep, uv, alpha, R, t, centre = best
         if keep.size < options.min_targets_per_image:
-            raise ValueError(
+            raise OptionsError(
                 f"image {j + 1}: no pose in 1000 tries sees {options.min_targets_per_image} "
                 "targets; increase n_targets or fov_deg"
             )
