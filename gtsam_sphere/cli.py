@@ -3,11 +3,19 @@
 Subcommands: ``demo``, ``simulate``, ``calibrate``, ``evaluate``, ``detect``
 (and those added by later stages). Every subcommand exits 0 on success,
 1 when the result should not be trusted, 2 on bad input (:data:`EXIT_CODES`).
+
+Standard error carries two streams: progress lines (the ``progress``
+callbacks; ``--quiet`` hides them) and the ``gtsam_sphere`` logger's records
+(warnings as ``warning: ...``, hints; never hidden), through a handler that
+:func:`main` installs for the duration of a command. Standard output carries
+results only.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import logging
 import os
 import sys
 import time
@@ -17,6 +25,8 @@ from .camera import DEFAULT_MODEL, Model, parse_brown_terms
 from .errors import InputError, OptionsError
 from .graph import Loss
 from .optimize import OptimizerKind, stderr_progress
+
+logger = logging.getLogger(__name__)
 
 
 def _add_calibration_options(p: argparse.ArgumentParser) -> None:
@@ -114,12 +124,11 @@ def cmd_calibrate(args) -> int:
 
     dataset = load_dataset(args.dataset)
     for iid, why in dataset.skipped_images:
-        print(f"warning: image {iid!r} skipped: {why}", file=sys.stderr)
+        logger.warning("image %r skipped: %s", iid, why)
     if dataset.dropped:
-        print(
-            f"warning: {len(dataset.dropped)} observations outside the image dropped "
-            f"(listed in the output)",
-            file=sys.stderr,
+        logger.warning(
+            "%d observations outside the image dropped (listed in the output)",
+            len(dataset.dropped),
         )
     t0 = time.perf_counter()
     calib = calibrate(dataset, _options_from_args(args), None if args.quiet else stderr_progress)
@@ -131,14 +140,12 @@ def cmd_calibrate(args) -> int:
     )
     _print_statistics(calib.statistics)
     _print_outliers(calib.extra.get("outliers", []))
-    for reason in calib.statistics.get("distrust", []):
-        print(f"warning: do not trust this result: {reason}", file=sys.stderr)
+    # the reasons not to trust the result were logged once by calibrate()
     if args.control_sigma is None and bool((dataset.target_sigma == 0).all()):
-        print(
+        logger.info(
             "hint: every target is exact (a printed board?); real boards are rarely flat or "
             "true to scale to 0.1 mm: try --control-sigma 0.0005 to estimate the board's "
-            "shape (README, 'Printed boards')",
-            file=sys.stderr,
+            "shape (README, 'Printed boards')"
         )
     return 0 if calib.statistics.get("trusted", calib.statistics["converged"]) else 1
 
@@ -351,6 +358,47 @@ def _say_why(exc: BaseException, args: argparse.Namespace) -> None:
         print(f"error: {message}", file=sys.stderr)
 
 
+class StderrLogHandler(logging.Handler):
+    """One line per log record on the *current* ``sys.stderr``.
+
+    Warnings and errors are prefixed with their level (``warning: ...``);
+    information (hints) is printed as it is. Looking up ``sys.stderr`` at each
+    record keeps redirections made after installation (tests, callers) working.
+    """
+
+    def emit(self, record: logging.LogRecord) -> None:
+        """Print ``record`` on standard error."""
+        try:
+            text = self.format(record)
+            if record.levelno >= logging.WARNING:
+                text = f"{record.levelname.lower()}: {text}"
+            print(text, file=sys.stderr, flush=True)
+        except Exception:  # logging must never break the command
+            self.handleError(record)
+
+
+@contextlib.contextmanager
+def log_to_stderr(level: int = logging.INFO):
+    """Show the ``gtsam_sphere`` logger's records on standard error while inside.
+
+    Parameters
+    ----------
+    level : int
+        Lowest level shown (default INFO: hints and warnings).
+    """
+    package = logging.getLogger("gtsam_sphere")
+    handler = StderrLogHandler(level)
+    previous = package.level
+    package.addHandler(handler)
+    if not package.isEnabledFor(level):
+        package.setLevel(level)
+    try:
+        yield handler
+    finally:
+        package.removeHandler(handler)
+        package.setLevel(previous)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``gtsam-sphere`` console script.
 
@@ -371,7 +419,8 @@ def main(argv: list[str] | None = None) -> int:
     """
     args = build_parser().parse_args(argv)
     try:
-        return int(args.func(args) or EXIT_OK)
+        with log_to_stderr():
+            return int(args.func(args) or EXIT_OK)
     except BaseException as exc:  # only the classes of EXIT_CODES are handled
         code = exit_code(exc)
         if code is None:

@@ -36,6 +36,7 @@ code                       poses  fatal when
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -45,6 +46,8 @@ import numpy as np
 from ._compat import StrEnum
 from .dataset import Dataset
 from .errors import DegenerateGeometryError
+
+logger = logging.getLogger(__name__)
 
 __all__ = [
     "DegenerateGeometryError",
@@ -505,7 +508,7 @@ def _pose_checks(
 def raise_if_degenerate(
     problems: Sequence[Problem], warn: Callable[[str], None] | None = None
 ) -> list[Problem]:
-    """Raise for the fatal problems; pass the others to ``warn``.
+    """Raise for the fatal problems; pass the others to ``warn`` or the logger.
 
     Parameters
     ----------
@@ -513,7 +516,8 @@ def raise_if_degenerate(
         Output of :func:`check_geometry`.
     warn : callable(str), optional
         Receives one line per non-fatal problem (``"warning: [code] message ->
-        advice"``), e.g. the calibration's progress sink.
+        advice"``). Default: each is a warning of the ``gtsam_sphere.diagnose``
+        logger (``"[code] message -> advice"``).
 
     Returns
     -------
@@ -530,7 +534,9 @@ def raise_if_degenerate(
     if fatal:
         raise DegenerateGeometryError(fatal)
     rest = [p for p in problems if not p.fatal]
-    if warn is not None:
-        for p in rest:
+    for p in rest:
+        if warn is not None:
             warn(f"warning: {p}")
+        else:
+            logger.warning("%s", p)
     return rest
