@@ -4,7 +4,14 @@ Pipeline, one module per stage: :mod:`dataset` (data contract) ->
 :mod:`initialize` (P3P + RANSAC) -> :mod:`graph` (factors) ->
 :mod:`optimize` (LM / dogleg) -> :mod:`correct` (kNN corrections) ->
 :mod:`evaluate` (check points) -> report.
+
+Warnings and diagnostics go to the ``gtsam_sphere`` logger (module loggers below
+it); progress goes to the ``progress`` callbacks. The library adds only a
+``NullHandler``: configure :mod:`logging` to see them (the command line installs
+a standard-error handler).
 """
+
+import logging
 
 from .calibration import Calibration, RigCalibration, load_calibration
 from .camera import Model, SphereCamera
@@ -16,11 +23,14 @@ from .dataset import (
     load_dataset,
     load_rig_dataset,
 )
+from .errors import GtsamSphereError, InputError
 
 __all__ = [
     "Calibration",
     "Dataset",
     "DatasetError",
+    "GtsamSphereError",
+    "InputError",
     "Model",
     "RigCalibration",
     "RigDataset",
@@ -31,3 +41,5 @@ __all__ = [
     "load_rig_dataset",
 ]
 __version__ = "0.1.0"
+
+logging.getLogger(__name__).addHandler(logging.NullHandler())

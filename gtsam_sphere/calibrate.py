@@ -7,6 +7,7 @@ job on a :class:`~gtsam_sphere.dataset.Dataset`.
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 
@@ -30,6 +31,8 @@ from .graph import (
     robust_weight,
 )
 from .optimize import OptimizationResult, OptimizerKind, OptimizerOptions, make_ordering, optimize
+
+logger = logging.getLogger(__name__)
 
 #: Brown terms of the brown models unless told otherwise
 BROWN_DEFAULT_TERMS = ("k1", "k2", "k3", "p1", "p2")
@@ -616,13 +619,13 @@ def calibrate(
     control_sigma = resolve_control_sigma(dataset, options.control_sigma)
     dataset = with_control_sigma(dataset, control_sigma, say)
     geometry = check_geometry(dataset)
-    raise_if_degenerate(geometry, warn=say)
+    raise_if_degenerate(geometry)  # warnings to the logger
     if init is None:
         init = initialise(dataset, options.seed, say)
     dataset = with_control_sigma(init.dataset, control_sigma)
     init_R, init_t = init.cam_from_world_R, init.cam_from_world_t
     posed = check_geometry(dataset, (init_R, init_t))
-    geometry += raise_if_degenerate([p for p in posed if p not in geometry], warn=say)
+    geometry += raise_if_degenerate([p for p in posed if p not in geometry])
     n_input_images = init.n_input_images
 
     pp = np.array([(dataset.width - 1) / 2.0, (dataset.height - 1) / 2.0])
@@ -710,7 +713,7 @@ def calibrate(
     calib.statistics["distrust"] = distrust_reasons(calib, cov_theta, options, problem)
     calib.statistics["trusted"] = not calib.statistics["distrust"]
     for reason in calib.statistics["distrust"]:
-        say(f"warning: do not trust this result: {reason}")
+        logger.warning("do not trust this result: %s", reason)
     calib.extra["geometry_warnings"] = [
         {"code": str(p.code), "message": p.message, "advice": p.advice} for p in geometry
     ]

@@ -21,12 +21,14 @@ See ``docs/conventions.md`` for frames and the unprojection ambiguity past
 
 from __future__ import annotations
 
-import enum
 import math
 from dataclasses import dataclass, field
 from typing import Protocol
 
 import numpy as np
+
+from ._compat import StrEnum
+from .errors import OptionsError
 
 BROWN_TERMS: tuple[str, ...] = ("k1", "k2", "k3", "p1", "p2", "a1", "a2")
 RADIAL_TERMS: tuple[str, ...] = ("g3", "g5", "g7", "g9", "g11", "g13")
@@ -37,7 +39,7 @@ ALPHA0_RAD = math.pi / 2
 FOLD_HORIZON = 1e6
 
 
-class Model(enum.StrEnum):
+class Model(StrEnum):
     """Camera models ``calibrate`` can estimate.
 
     ``sphere``: the paper's sphere mapping, ``xp, yp, c`` only.
@@ -104,7 +106,8 @@ def check_points_cam(points_cam: np.ndarray) -> np.ndarray:
 def parse_brown_terms(text: str | None) -> tuple[str, ...]:
     """Parse ``"k1,k2,p1"`` into an ordered tuple of Brown term names.
 
-    Raises ``ValueError`` naming an unknown term. ``"all"`` selects all seven.
+    Raises :class:`~gtsam_sphere.errors.OptionsError` (a ``ValueError``) naming an
+    unknown term. ``"all"`` selects all seven.
     """
     if text is None or text.strip() == "":
         return ()
@@ -113,7 +116,7 @@ def parse_brown_terms(text: str | None) -> tuple[str, ...]:
     names = [t.strip().lower() for t in text.split(",") if t.strip()]
     for n in names:
         if n not in BROWN_TERMS:
-            raise ValueError(f"unknown additional parameter {n!r}; choose from {BROWN_TERMS}")
+            raise OptionsError(f"unknown additional parameter {n!r}; choose from {BROWN_TERMS}")
     return tuple(t for t in BROWN_TERMS if t in names)
 
 
@@ -176,7 +179,7 @@ def brown_distortion(
 def radial_terms(n: int) -> tuple[str, ...]:
     """Names of the first ``n`` radial-mapping coefficients: ``("g3", "g5", ...)``."""
     if not 0 <= n <= len(RADIAL_TERMS):
-        raise ValueError(f"the radial mapping has 0 to {len(RADIAL_TERMS)} terms, got {n}")
+        raise OptionsError(f"the radial mapping has 0 to {len(RADIAL_TERMS)} terms, got {n}")
     return RADIAL_TERMS[:n]
 
 

@@ -2,21 +2,31 @@
 
 Subcommands: ``demo``, ``simulate``, ``calibrate``, ``evaluate``, ``detect``
 (and those added by later stages). Every subcommand exits 0 on success,
-1 when the result should not be trusted, 2 on bad input.
+1 when the result should not be trusted, 2 on bad input (:data:`EXIT_CODES`).
+
+Standard error carries two streams: progress lines (the ``progress``
+callbacks; ``--quiet`` hides them) and the ``gtsam_sphere`` logger's records
+(warnings as ``warning: ...``, hints; never hidden), through a handler that
+:func:`main` installs for the duration of a command. Standard output carries
+results only.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import logging
 import os
 import sys
 import time
 from pathlib import Path
 
 from .camera import DEFAULT_MODEL, Model, parse_brown_terms
-from .dataset import DatasetError
+from .errors import InputError, OptionsError
 from .graph import Loss
 from .optimize import OptimizerKind, stderr_progress
+
+logger = logging.getLogger(__name__)
 
 
 def _add_calibration_options(p: argparse.ArgumentParser) -> None:
@@ -83,20 +93,28 @@ def _control_sigma_arg(text: str):
 
 
 def _options_from_args(args):
+    """:class:`~gtsam_sphere.calibrate.CalibrationOptions` from the parsed arguments.
+
+    A value the options refuse raises :class:`~gtsam_sphere.errors.OptionsError`.
+    """
     from .calibrate import CalibrationOptions
 
-    return CalibrationOptions(
-        model=Model(args.model),
-        brown_terms=None if args.ap is None else parse_brown_terms(args.ap),
-        radial_terms=args.radial_terms,
-        optimizer=OptimizerKind(args.optimizer),
-        loss=Loss(args.loss),
-        loss_threshold=args.loss_threshold,
-        sigma_px=args.sigma_px,
-        max_iterations=args.max_iterations,
-        seed=args.seed,
-        control_sigma=args.control_sigma,
-    )
+    brown_terms = None if args.ap is None else parse_brown_terms(args.ap)
+    try:
+        return CalibrationOptions(
+            model=Model(args.model),
+            brown_terms=brown_terms,
+            radial_terms=args.radial_terms,
+            optimizer=OptimizerKind(args.optimizer),
+            loss=Loss(args.loss),
+            loss_threshold=args.loss_threshold,
+            sigma_px=args.sigma_px,
+            max_iterations=args.max_iterations,
+            seed=args.seed,
+            control_sigma=args.control_sigma,
+        )
+    except ValueError as exc:  # the checks of CalibrationOptions: the values given
+        raise OptionsError(str(exc)) from exc
 
 
 def _print_statistics(stats: dict) -> None:
@@ -130,15 +148,14 @@ def cmd_calibrate(args) -> int:
     if rig.is_rig_dataset(args.dataset):  # dataset@2: the rig path (gtsam_sphere/rig.py)
         return rig.run_cli(args, _options_from_args(args), None if args.quiet else stderr_progress)
     if args.camera_model:
-        raise DatasetError("--camera-model applies to a rig (dataset@2); use --model")
+        raise OptionsError("--camera-model applies to a rig (dataset@2); use --model")
     dataset = load_dataset(args.dataset)
     for iid, why in dataset.skipped_images:
-        print(f"warning: image {iid!r} skipped: {why}", file=sys.stderr)
+        logger.warning("image %r skipped: %s", iid, why)
     if dataset.dropped:
-        print(
-            f"warning: {len(dataset.dropped)} observations outside the image dropped "
-            f"(listed in the output)",
-            file=sys.stderr,
+        logger.warning(
+            "%d observations outside the image dropped (listed in the output)",
+            len(dataset.dropped),
         )
     t0 = time.perf_counter()
     calib = calibrate(dataset, _options_from_args(args), None if args.quiet else stderr_progress)
@@ -150,14 +167,12 @@ def cmd_calibrate(args) -> int:
     )
     _print_statistics(calib.statistics)
     _print_outliers(calib.extra.get("outliers", []))
-    for reason in calib.statistics.get("distrust", []):
-        print(f"warning: do not trust this result: {reason}", file=sys.stderr)
+    # the reasons not to trust the result were logged once by calibrate()
     if args.control_sigma is None and bool((dataset.target_sigma == 0).all()):
-        print(
+        logger.info(
             "hint: every target was held exact (--exact-targets); real boards are rarely "
             "flat or true to scale to 0.1 mm: without --exact-targets their shape is "
-            "estimated (README, 'Printed boards')",
-            file=sys.stderr,
+            "estimated (README, 'Printed boards')"
         )
     return 0 if calib.statistics.get("trusted", calib.statistics["converged"]) else 1
 
@@ -311,6 +326,112 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+#: exit code of a run that went through and whose result can be trusted
+EXIT_OK = 0
+#: exit code of a run that wrote its result but says not to trust it (``calibrate``:
+#: ``statistics.distrust`` says why; ``demo``: not converged)
+EXIT_UNTRUSTED = 1
+
+#: Exit code of each exception class, the one table of them: the first row whose class
+#: matches wins (so a subclass comes before its base). An exception in no row is a bug
+#: and keeps its traceback: a ``ValueError`` that is not an :class:`InputError` (raised
+#: inside numpy, GTSAM or by a missing check of ours) is not bad input.
+EXIT_CODES: tuple[tuple[type[BaseException], int], ...] = (
+    # bad input: a file that violates its contract (DatasetError), degenerate geometry
+    # (DegenerateGeometryError), no image initialised, a bad option (OptionsError)
+    (InputError, 2),
+    # standard output closed by its reader (``| head``): before OSError, its base
+    (BrokenPipeError, 141),
+    # an output that cannot be written (a directory, permissions, disc full)
+    (OSError, 2),
+    # Ctrl-C: nothing written
+    (KeyboardInterrupt, 130),
+)
+
+
+def exit_code(exc: BaseException) -> int | None:
+    """The exit code of ``exc`` by :data:`EXIT_CODES`, None for one to re-raise.
+
+    Parameters
+    ----------
+    exc : BaseException
+
+    Returns
+    -------
+    int or None
+    """
+    for cls, code in EXIT_CODES:
+        if isinstance(exc, cls):
+            return code
+    return None
+
+
+def _say_why(exc: BaseException, args: argparse.Namespace) -> None:
+    """Tell on standard error why the run stops (one line; nothing for a closed pipe)."""
+    if isinstance(exc, BrokenPipeError):
+        # no message, and no traceback at exit when Python flushes stdout again
+        try:
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, sys.stdout.fileno())
+        except (OSError, ValueError, AttributeError):  # no real file behind sys.stdout
+            pass
+    elif isinstance(exc, KeyboardInterrupt):
+        out = getattr(args, "output", None)
+        where = ""
+        if out is not None and Path(out).is_file():
+            where = f"; the last good result is the previous {out}, unchanged"
+        elif out is not None:
+            where = f"; {out} was not created"
+        print(f"interrupted: no output file was written or changed{where}", file=sys.stderr)
+    elif isinstance(exc, OSError) and not isinstance(exc, InputError):
+        filename = f"{exc.filename}: " if exc.filename else ""
+        print(f"error: {filename}{exc.strerror or exc}", file=sys.stderr)
+    else:
+        message = " ".join(str(exc).split()) or type(exc).__name__
+        print(f"error: {message}", file=sys.stderr)
+
+
+class StderrLogHandler(logging.Handler):
+    """One line per log record on the *current* ``sys.stderr``.
+
+    Warnings and errors are prefixed with their level (``warning: ...``);
+    information (hints) is printed as it is. Looking up ``sys.stderr`` at each
+    record keeps redirections made after installation (tests, callers) working.
+    """
+
+    def emit(self, record: logging.LogRecord) -> None:
+        """Print ``record`` on standard error."""
+        try:
+            text = self.format(record)
+            if record.levelno >= logging.WARNING:
+                text = f"{record.levelname.lower()}: {text}"
+            print(text, file=sys.stderr, flush=True)
+        except Exception:  # logging must never break the command
+            self.handleError(record)
+
+
+@contextlib.contextmanager
+def log_to_stderr(level: int = logging.INFO):
+    """Show the ``gtsam_sphere`` logger's records on standard error while inside.
+
+    Parameters
+    ----------
+    level : int
+        Lowest level shown (default INFO: hints and warnings).
+    """
+    package = logging.getLogger("gtsam_sphere")
+    handler = StderrLogHandler(level)
+    previous = package.level
+    package.addHandler(handler)
+    if not package.isEnabledFor(level):
+        package.setLevel(level)
+    try:
+        yield handler
+    finally:
+        package.removeHandler(handler)
+        package.setLevel(previous)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``gtsam-sphere`` console script.
 
@@ -322,63 +443,23 @@ def main(argv: list[str] | None = None) -> int:
     Returns
     -------
     int
-        0 success, 1 result not to be trusted, 2 bad input (one ``error: ...``
-        line on standard error, no output file written), 130 interrupted, 141
-        standard output closed by its reader (e.g. piped to ``head``; files already
-        written are complete, the work after the closed pipe was not done).
+        0 success, 1 result not to be trusted, 2 bad input or degenerate
+        geometry (one ``error: ...`` line on standard error, no output file
+        written), 130 interrupted, 141 standard output closed by its reader
+        (e.g. piped to ``head``; files already written are complete, the work
+        after the closed pipe was not done). :data:`EXIT_CODES` maps exceptions
+        to these codes; any other exception propagates with its traceback.
     """
     args = build_parser().parse_args(argv)
-
-    def fail(exc: BaseException) -> int:
-        message = " ".join(str(exc).split()) or type(exc).__name__
-        print(f"error: {message}", file=sys.stderr)
-        return 2
-
     try:
-        return int(args.func(args) or 0)
-    except DatasetError as exc:  # bad input file, degenerate geometry (diagnose)
-        return fail(exc)
-    except ValueError as exc:
-        # A ValueError from a `raise` statement in gtsam_sphere's own code states what is
-        # wrong with the input (no image could be initialised, an incomplete datum, fewer
-        # than 3 check points, NaN refused in an output file). One raised inside numpy,
-        # GTSAM or another library (or by a C function such as np.array or float called
-        # from our code) means a check is missing: keep its traceback.
-        import dis
-
-        tb = exc.__traceback__
-        while tb is not None and tb.tb_next is not None:
-            tb = tb.tb_next
-        if tb is None:
+        with log_to_stderr():
+            return int(args.func(args) or EXIT_OK)
+    except BaseException as exc:  # only the classes of EXIT_CODES are handled
+        code = exit_code(exc)
+        if code is None:
             raise
-        code = tb.tb_frame.f_code
-        package = Path(__file__).resolve().parent
-        ours = package in Path(code.co_filename).resolve().parents
-        if not ours or dis.opname[code.co_code[tb.tb_lasti]] != "RAISE_VARARGS":
-            raise
-        return fail(exc)
-    except BrokenPipeError:
-        # the reader of standard output went away (`... | head`): no message, no traceback
-        # at exit when Python flushes stdout again
-        try:
-            devnull = os.open(os.devnull, os.O_WRONLY)
-            os.dup2(devnull, sys.stdout.fileno())
-        except (OSError, ValueError, AttributeError):  # no real file behind sys.stdout
-            pass
-        return 141
-    except OSError as exc:  # the output cannot be written (directory, permissions, disc full)
-        filename = f"{exc.filename}: " if exc.filename else ""
-        print(f"error: {filename}{exc.strerror or exc}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        out = getattr(args, "output", None)
-        where = ""
-        if out is not None and Path(out).is_file():
-            where = f"; the last good result is the previous {out}, unchanged"
-        elif out is not None:
-            where = f"; {out} was not created"
-        print(f"interrupted: no output file was written or changed{where}", file=sys.stderr)
-        return 130
+        _say_why(exc, args)
+        return code
 
 
 if __name__ == "__main__":

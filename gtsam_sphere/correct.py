@@ -8,12 +8,15 @@ the reprojection error and the cross-validation score are both stable.
 
 from __future__ import annotations
 
+import numbers
+import warnings
 from collections.abc import Callable
 
 import numpy as np
 from sklearn.base import BaseEstimator, RegressorMixin
 from sklearn.model_selection import KFold
 from sklearn.neighbors import KNeighborsRegressor, NearestNeighbors
+from sklearn.utils.validation import check_array, check_is_fitted
 
 from .camera import check_uv
 from .graph import robust_sigma_px
@@ -113,10 +116,18 @@ def neighbours_without_self(nn, X: np.ndarray, k: int) -> tuple[np.ndarray, np.n
 class KNNCorrection(RegressorMixin, BaseEstimator):
     """k-nearest-neighbour model of the measurement corrections, px -> px.
 
+    A scikit-learn regressor with two inputs (the raw pixel ``u, v``) and two
+    outputs (the correction ``dx, dy`` in px): ``fit`` returns the estimator,
+    every fitted attribute ends in ``_``, ``predict`` before ``fit`` raises
+    ``sklearn.exceptions.NotFittedError``, and ``__init__`` only stores its
+    arguments (checked by ``sklearn.utils.estimator_checks`` in the tests).
+
     Parameters
     ----------
-    n_neighbors : int or None
-        ``None`` chooses ``k`` from ``k_grid`` by ``cv_folds``-fold cross-validation.
+    n_neighbors : int >= 1 or None
+        ``None`` (default) chooses ``k`` from ``k_grid`` by ``cv_folds``-fold
+        cross-validation. ``0`` meant the same before and still does, with a
+        ``FutureWarning``: it will be refused in a later version.
     weights : {"uniform", "distance"} or None
         ``None`` chooses by cross-validation too.
     cv_folds : int
@@ -136,6 +147,8 @@ class KNNCorrection(RegressorMixin, BaseEstimator):
 
     Attributes
     ----------
+    n_features_in_ : int
+        2: the pixel coordinates ``u, v``.
     n_neighbors_, weights_, degree_ : chosen hyper-parameters.
     cv_rmse_px_ : float
         Cross-validated RMS of the correction error (px, over both coordinates).
@@ -177,20 +190,29 @@ class KNNCorrection(RegressorMixin, BaseEstimator):
         -------
         self : KNNCorrection
         """
-        X = check_uv(uv_px)
-        y = check_uv(corrections_px, "corrections_px")
+        if corrections_px is None:
+            raise ValueError("KNNCorrection requires y to be passed, but the target y is None")
+        # scikit-learn's checks first (sparse, complex, empty, NaN or inf: its messages), then
+        # the shapes of pixels and corrections
+        X = check_uv(check_array(uv_px, dtype=np.float64, input_name="uv_px"))
+        y = check_array(corrections_px, dtype=np.float64, ensure_2d=False, input_name="y")
+        y = check_uv(y, "corrections_px")
         if len(X) != len(y):
             raise ValueError(f"uv_px has {len(X)} rows but corrections_px {len(y)}")
         if self.degree not in (None, *DEGREES):
             raise ValueError(f"degree must be 0, 1 or None, got {self.degree!r}")
-        ks = [self.n_neighbors] if self.n_neighbors else [k for k in self.k_grid if k < len(X)]
-        ws = [self.weights] if self.weights else list(WEIGHTS)
+        if self.weights not in (None, *WEIGHTS):
+            raise ValueError(f"weights must be 'uniform', 'distance' or None, got {self.weights!r}")
+        n_neighbors = self._n_neighbors_or_none()
+        ks = [n_neighbors] if n_neighbors is not None else [k for k in self.k_grid if k < len(X)]
+        ws = [self.weights] if self.weights is not None else list(WEIGHTS)
         degrees = list(DEGREES) if self.degree is None else [self.degree]
         if not ks:
             raise ValueError(f"too few training points ({len(X)}) for kNN")
         scores = self._cross_validate(X, y, ks, ws, degrees)
         # the first best in (degree, k, weights) order: the simplest model wins a tie
         best = min(scores, key=scores.get)
+        self.n_features_in_ = X.shape[1]
         self.degree_, self.n_neighbors_, self.weights_ = int(best[0]), int(best[1]), str(best[2])
         self.cv_scores_ = scores
         self.cv_rmse_px_ = float(scores[best])
@@ -200,6 +222,31 @@ class KNNCorrection(RegressorMixin, BaseEstimator):
             n_neighbors=min(self.n_neighbors_, len(X)), weights=self.weights_
         ).fit(X, y)
         return self
+
+    def __sklearn_tags__(self):
+        """Tags for scikit-learn >= 1.6: a target is required, with two outputs."""
+        tags = super().__sklearn_tags__()
+        tags.target_tags.required = True
+        tags.target_tags.multi_output = True
+        tags.target_tags.single_output = False
+        return tags
+
+    def _n_neighbors_or_none(self) -> int | None:
+        """``n_neighbors`` checked: an int >= 1, or None for the cross-validation's choice."""
+        k = self.n_neighbors
+        if k is None:
+            return None
+        if isinstance(k, bool) or not isinstance(k, numbers.Integral) or k < 0:
+            raise ValueError(f"n_neighbors must be an int >= 1 or None, got {k!r}")
+        if k == 0:
+            warnings.warn(
+                "KNNCorrection(n_neighbors=0) is deprecated: use n_neighbors=None to choose k "
+                "by cross-validation (0 will be refused in a later version)",
+                FutureWarning,
+                stacklevel=3,
+            )
+            return None
+        return int(k)
 
     def _cross_validate(self, X, y, ks, ws, degrees) -> dict:
         """Pooled ``cv_folds``-fold RMS (px, per point) of every candidate."""
@@ -227,10 +274,11 @@ class KNNCorrection(RegressorMixin, BaseEstimator):
         ndarray, shape (N, 2)
             Corrections (px).
         """
+        check_is_fitted(self)
         X = check_uv(uv_px)
         if len(X) == 0:
             return np.zeros((0, 2))
-        if getattr(self, "degree_", 0) == 0:
+        if self.degree_ == 0:
             return self.regressor_.predict(X)
         dist, ind = self.regressor_.kneighbors(X)
         return local_fit(
@@ -247,12 +295,14 @@ class KNNCorrection(RegressorMixin, BaseEstimator):
         would then fit its own noise and the in-sample statistics would be
         optimistic.
         """
+        check_is_fitted(self)
         X, y = self.uv_px_, self.corrections_px_
         dist, ind = neighbours_without_self(self.regressor_, X, self.n_neighbors_)
-        return local_fit(X, y, X, ind, dist, self.weights_, getattr(self, "degree_", 0))
+        return local_fit(X, y, X, ind, dist, self.weights_, self.degree_)
 
     def to_dict(self) -> dict:
         """JSON form stored in ``calibration@1`` (``camera.correction``)."""
+        check_is_fitted(self)
         return {
             "kind": "knn",
             "n_neighbors": self.n_neighbors_,
@@ -271,6 +321,7 @@ def correction_from_dict(d: dict) -> KNNCorrection:
     model = KNNCorrection(
         n_neighbors=int(d["n_neighbors"]), weights=str(d["weights"]), degree=int(d.get("degree", 0))
     )
+    model.n_features_in_ = 2
     model.n_neighbors_ = model.n_neighbors
     model.weights_ = model.weights
     model.degree_ = model.degree

@@ -22,6 +22,8 @@ from typing import Any
 
 import numpy as np
 
+from .errors import DatasetError, InputError
+
 DATASET_FORMAT = "gtsam-sphere/dataset@1"
 RIG_DATASET_FORMAT = "gtsam-sphere/dataset@2"
 CHECKPOINTS_FORMAT = "gtsam-sphere/checkpoints@1"
@@ -36,10 +38,6 @@ MAX_IMAGE_SIDE_PX = 1_000_000
 MAX_ABS_COORDINATE = 1e12
 #: Smallest accepted positive target sigma (object units); use 0 for exact control.
 MIN_POSITIVE_SIGMA = 1e-12
-
-
-class DatasetError(ValueError):
-    """An input file violates the data contract; the message names the item."""
 
 
 @dataclass
@@ -759,7 +757,7 @@ def _jsonable(obj: Any, where: str = "") -> Any:
     if isinstance(obj, (np.floating, float)):
         v = float(obj)
         if not math.isfinite(v):
-            raise ValueError(
+            raise InputError(
                 f"refusing to write NaN or inf to a JSON output file (at {where or 'top level'})"
             )
         return v

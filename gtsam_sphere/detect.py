@@ -77,6 +77,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from .errors import DatasetError, InputError, OptionsError
+
 __all__ = [
     "BoardSpec",
     "DetectionReport",
@@ -103,13 +105,13 @@ DATASET_FORMAT = "gtsam-sphere/dataset@1"
 def _parse_dims(text: str, what: str) -> tuple[int, int]:
     parts = text.lower().split("x")
     if len(parts) != 2:
-        raise ValueError(f"bad {what} {text!r}: expected 'NxM', e.g. '4x6'")
+        raise OptionsError(f"bad {what} {text!r}: expected 'NxM', e.g. '4x6'")
     try:
         a, b = int(parts[0]), int(parts[1])
     except ValueError:
-        raise ValueError(f"bad {what} {text!r}: expected two integers 'NxM'") from None
+        raise OptionsError(f"bad {what} {text!r}: expected two integers 'NxM'") from None
     if a < 1 or b < 1:
-        raise ValueError(f"bad {what} {text!r}: both counts must be >= 1")
+        raise OptionsError(f"bad {what} {text!r}: both counts must be >= 1")
     return a, b
 
 
@@ -117,9 +119,9 @@ def _parse_length(text: str, what: str) -> float:
     try:
         value = float(text)
     except ValueError:
-        raise ValueError(f"bad {what} {text!r}: expected a length in metres") from None
+        raise OptionsError(f"bad {what} {text!r}: expected a length in metres") from None
     if not np.isfinite(value) or value <= 0:
-        raise ValueError(f"bad {what} {text!r}: must be a positive length in metres")
+        raise OptionsError(f"bad {what} {text!r}: must be a positive length in metres")
     return value
 
 
@@ -127,7 +129,7 @@ def _parse_dictionary(text: str) -> int:
     name = text.upper()
     if not name.startswith("DICT_") or not hasattr(cv2.aruco, name):
         known = sorted(n for n in dir(cv2.aruco) if n.startswith("DICT_"))
-        raise ValueError(f"bad ArUco dictionary {text!r}: expected one of {', '.join(known)}")
+        raise OptionsError(f"bad ArUco dictionary {text!r}: expected one of {', '.join(known)}")
     return int(getattr(cv2.aruco, name))
 
 
@@ -185,39 +187,39 @@ class BoardSpec:
         kind = parts[0].lower()
         if kind == "chessboard":
             if len(parts) != 3:
-                raise ValueError(
+                raise OptionsError(
                     f"bad board {text!r}: expected 'chessboard:COLSxROWS:SQUARE_M' "
                     "(inner corners, square side in metres)"
                 )
             cols, rows = _parse_dims(parts[1], "chessboard size")
             if cols < 2 or rows < 2:
-                raise ValueError(f"bad chessboard size {parts[1]!r}: need >= 2x2 inner corners")
+                raise OptionsError(f"bad chessboard size {parts[1]!r}: need >= 2x2 inner corners")
             square = _parse_length(parts[2], "square size")
             return cls("chessboard", cols, rows, square, text=str(text))
         if kind == "charuco":
             if len(parts) != 5:
-                raise ValueError(
+                raise OptionsError(
                     f"bad board {text!r}: expected 'charuco:SXxSY:SQUARE_M:MARKER_M:DICT' "
                     "(squares, lengths in metres)"
                 )
             sx, sy = _parse_dims(parts[1], "ChArUco size")
             if sx < 2 or sy < 2:
-                raise ValueError(f"bad ChArUco size {parts[1]!r}: need >= 2x2 squares")
+                raise OptionsError(f"bad ChArUco size {parts[1]!r}: need >= 2x2 squares")
             square = _parse_length(parts[2], "square size")
             marker = _parse_length(parts[3], "marker size")
             if marker >= square:
-                raise ValueError(
+                raise OptionsError(
                     f"bad marker size {parts[3]!r}: must be smaller than the square ({parts[2]})"
                 )
             _parse_dictionary(parts[4])
             return cls("charuco", sx, sy, square, marker, parts[4].upper(), text=str(text))
         if kind == "aruco":
             if len(parts) != 3:
-                raise ValueError(f"bad board {text!r}: expected 'aruco:DICT:MARKER_M'")
+                raise OptionsError(f"bad board {text!r}: expected 'aruco:DICT:MARKER_M'")
             _parse_dictionary(parts[1])
             marker = _parse_length(parts[2], "marker size")
             return cls("aruco", marker_m=marker, dictionary=parts[1].upper(), text=str(text))
-        raise ValueError(
+        raise OptionsError(
             f"bad board kind {parts[0]!r} in {text!r}: expected 'chessboard', 'charuco' or 'aruco'"
         )
 
@@ -1142,19 +1144,19 @@ def read_markers_csv(path: str) -> dict[str, tuple[np.ndarray, float | None]]:
             except ValueError:
                 if lineno == 1:  # header
                     continue
-                raise ValueError(f"{path}:{lineno}: bad marker id {cells[0]!r}") from None
+                raise DatasetError(f"{path}:{lineno}: bad marker id {cells[0]!r}") from None
             if len(cells) not in (4, 5):
-                raise ValueError(f"{path}:{lineno}: expected 'id,X,Y,Z[,sigma]', got {row!r}")
+                raise DatasetError(f"{path}:{lineno}: expected 'id,X,Y,Z[,sigma]', got {row!r}")
             try:
                 xyz = np.array([float(c) for c in cells[1:4]])
                 sigma = float(cells[4]) if len(cells) == 5 and cells[4] else None
             except ValueError:
-                raise ValueError(f"{path}:{lineno}: non-numeric value in {row!r}") from None
+                raise DatasetError(f"{path}:{lineno}: non-numeric value in {row!r}") from None
             if not np.all(np.isfinite(xyz)) or (sigma is not None and not sigma >= 0):
-                raise ValueError(f"{path}:{lineno}: non-finite coordinate or bad sigma {row!r}")
+                raise DatasetError(f"{path}:{lineno}: non-finite coordinate or bad sigma {row!r}")
             key = f"M{mid}"
             if key in out:
-                raise ValueError(f"{path}:{lineno}: duplicate marker id {mid}")
+                raise DatasetError(f"{path}:{lineno}: duplicate marker id {mid}")
             out[key] = (xyz, sigma)
     return out
 
@@ -1226,13 +1228,13 @@ def detect_images(
     survey = None
     if board.kind == "aruco":
         if markers_csv is None:
-            raise ValueError(
+            raise OptionsError(
                 "ArUco marker detection needs --markers-csv (surveyed marker centres): "
                 "markers have no board frame"
             )
         survey = read_markers_csv(markers_csv)
     elif markers_csv is not None:
-        raise ValueError(f"markers_csv is only used with 'aruco' targets, not {board.kind!r}")
+        raise OptionsError(f"markers_csv is only used with 'aruco' targets, not {board.kind!r}")
     board_points = board.object_points_m()
     paths = [str(p) for p in paths]
     ids = _image_ids(paths)
@@ -1278,7 +1280,7 @@ def detect_images(
     if progress and paths:
         _progress(len(paths), len(paths), "done")
     if not images:
-        raise ValueError(
+        raise InputError(
             f"no usable image among {len(paths)}: "
             + "; ".join(f"{p}: {r}" for p, r in report.skipped[:5])
         )
@@ -1639,7 +1641,9 @@ def recover_dataset(
     from .dataset import parse_dataset
 
     if board.kind not in ("chessboard", "charuco"):
-        raise ValueError(f"corner recovery needs a chessboard or ChArUco board, not {board.kind!r}")
+        raise OptionsError(
+            f"corner recovery needs a chessboard or ChArUco board, not {board.kind!r}"
+        )
     say = progress or (lambda _line: None)
     points = board.object_points_m()
     size = (int(dataset["camera"]["width"]), int(dataset["camera"]["height"]))
@@ -1841,7 +1845,7 @@ def run_cli(args: argparse.Namespace) -> int:
             markers_csv=args.markers_csv,
             min_points=getattr(args, "min_points", 1),
         )
-    except (ValueError, OSError) as exc:
+    except (InputError, OSError) as exc:  # bad options or input files; a bug keeps its traceback
         print(f"gtsam-sphere detect: error: {exc}", file=sys.stderr)
         return 2
     recovery = None
@@ -1853,8 +1857,14 @@ def run_cli(args: argparse.Namespace) -> int:
             if not getattr(args, "no_progress", False):
                 print(f"recovery: {line}", file=sys.stderr, flush=True)
 
+        if args.recover_model not in {m.value for m in Model}:
+            print(
+                f"gtsam-sphere detect: error: recovery: unknown --recover-model "
+                f"{args.recover_model!r}; choose from {', '.join(m.value for m in Model)}",
+                file=sys.stderr,
+            )
+            return 2
         try:
-            Model(args.recover_model)
             calib = load_calibration(args.recover_with) if args.recover_with else None
             dataset, recovery = recover_dataset(
                 dataset,
@@ -1866,7 +1876,7 @@ def run_cli(args: argparse.Namespace) -> int:
                 max_offset_px=args.recover_max_offset_px,
                 progress=say,
             )
-        except (ValueError, OSError) as exc:
+        except (InputError, OSError) as exc:
             print(f"gtsam-sphere detect: error: recovery: {exc}", file=sys.stderr)
             return 2
     write_json_atomic(dataset, args.output)

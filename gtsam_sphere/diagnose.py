@@ -7,7 +7,7 @@ enough control in each block). :func:`check_geometry` looks for the classic
 failures and returns one :class:`Problem` per finding, naming the images or
 targets concerned and what to capture next; :func:`raise_if_degenerate`
 turns the fatal ones into a :class:`DegenerateGeometryError` (a
-:class:`~gtsam_sphere.dataset.DatasetError`, so the command line exits 2).
+:class:`~gtsam_sphere.errors.InputError`, so the command line exits 2).
 
 The checks are pure functions of the dataset (and, for the pose-dependent
 ones, of the initial ``cam_from_world`` poses); nothing is adjusted.
@@ -36,14 +36,18 @@ code                       poses  fatal when
 
 from __future__ import annotations
 
-import enum
+import logging
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from .dataset import Dataset, DatasetError
+from ._compat import StrEnum
+from .dataset import Dataset
+from .errors import DegenerateGeometryError
+
+logger = logging.getLogger(__name__)
 
 __all__ = [
     "DegenerateGeometryError",
@@ -55,7 +59,7 @@ __all__ = [
 ]
 
 
-class ProblemCode(enum.StrEnum):
+class ProblemCode(StrEnum):
     """Kinds of geometric weakness found by :func:`check_geometry`."""
 
     SINGLE_IMAGE = "single-image"
@@ -95,21 +99,6 @@ class Problem:
 
     def __str__(self) -> str:
         return f"[{self.code}] {self.message} -> {self.advice}"
-
-
-class DegenerateGeometryError(DatasetError):
-    """The dataset's geometry cannot calibrate the camera; ``problems`` lists why.
-
-    Attributes
-    ----------
-    problems : list of Problem
-        The fatal problems (message and advice of each are in the text).
-    """
-
-    def __init__(self, problems: Sequence[Problem]):
-        self.problems = list(problems)
-        text = "; ".join(f"{p.message} ({p.code}; advice: {p.advice})" for p in self.problems)
-        super().__init__(f"degenerate calibration geometry: {text}")
 
 
 def _names(ids: Sequence[str], limit: int = 6) -> str:
@@ -519,7 +508,7 @@ def _pose_checks(
 def raise_if_degenerate(
     problems: Sequence[Problem], warn: Callable[[str], None] | None = None
 ) -> list[Problem]:
-    """Raise for the fatal problems; pass the others to ``warn``.
+    """Raise for the fatal problems; pass the others to ``warn`` or the logger.
 
     Parameters
     ----------
@@ -527,7 +516,8 @@ def raise_if_degenerate(
         Output of :func:`check_geometry`.
     warn : callable(str), optional
         Receives one line per non-fatal problem (``"warning: [code] message ->
-        advice"``), e.g. the calibration's progress sink.
+        advice"``). Default: each is a warning of the ``gtsam_sphere.diagnose``
+        logger (``"[code] message -> advice"``).
 
     Returns
     -------
@@ -544,7 +534,9 @@ def raise_if_degenerate(
     if fatal:
         raise DegenerateGeometryError(fatal)
     rest = [p for p in problems if not p.fatal]
-    if warn is not None:
-        for p in rest:
+    for p in rest:
+        if warn is not None:
             warn(f"warning: {p}")
+        else:
+            logger.warning("%s", p)
     return rest

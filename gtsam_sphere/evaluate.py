@@ -7,6 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .calibration import Calibration
+from .errors import InputError
 from .geometry import fit_similarity
 
 
@@ -83,7 +84,7 @@ def evaluate_checkpoints(
     common = [(k, index[c]) for k, c in enumerate(checkpoint_ids) if c in index]
     missing = [c for c in checkpoint_ids if c not in index]
     if len(common) < 3:
-        raise ValueError(
+        raise InputError(
             f"only {len(common)} of {len(checkpoint_ids)} check points are adjusted targets; "
             "need at least 3"
         )

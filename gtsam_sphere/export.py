@@ -54,6 +54,7 @@ comments. Both are written atomically.
 from __future__ import annotations
 
 import argparse
+import logging
 import math
 import os
 from collections.abc import Callable
@@ -63,6 +64,8 @@ from pathlib import Path
 import numpy as np
 
 from .dataset import DatasetError, write_bytes_atomic, write_json_atomic
+
+logger = logging.getLogger(__name__)
 
 TARGETS: tuple[str, ...] = ("opencv-fisheye", "opencv-rational", "kalibr-equi", "kalibr-ds")
 REGIONS: tuple[str, ...] = ("hull", "radius", "image")
@@ -907,7 +910,7 @@ class ExportResult:
                 f"RMS {o['rms_px']:.4f} px, max {o['max_px']:.4f} px"
             )
         if not self.converged:
-            lines.append("  warning: the fit did not converge")
+            lines.append("  the fit did not converge")
         return "\n".join(lines)
 
     def fit_dict(self) -> dict:
@@ -1317,9 +1320,12 @@ def run_cli(args) -> int:
     print(f"wrote {path}")
     print(result.summary())
     if not (result.rms_px <= args.max_rms_px) or not result.converged:
-        print(
-            f"warning: fit RMS {result.rms_px:.4f} px exceeds {args.max_rms_px:g} px "
-            "or the fit did not converge: the exported model does not reproduce the calibration",
+        # a warning (standard error through logging), not part of the result on stdout
+        logger.warning(
+            "fit RMS %.4f px exceeds %g px or the fit did not converge: the exported model "
+            "does not reproduce the calibration",
+            result.rms_px,
+            args.max_rms_px,
         )
         return 1
     return 0

@@ -24,13 +24,14 @@ corrections means building new blocks, which costs milliseconds
 
 from __future__ import annotations
 
-import enum
 from dataclasses import dataclass, field
 
 import gtsam
 import numpy as np
 
+from ._compat import StrEnum
 from .camera import sphere_residual
+from .errors import DatasetError
 
 
 def pose_key(i: int) -> int:
@@ -46,7 +47,7 @@ def point_key(j: int) -> int:
 INTRINSICS_KEY = gtsam.symbol("k", 0)
 
 
-class Loss(enum.StrEnum):
+class Loss(StrEnum):
     """Robust M-estimators, applied per observation to the whitened residual norm."""
 
     L2 = "l2"
@@ -461,7 +462,7 @@ class NormalOffsetFactor:
         return np.array([self.normal @ (p - self.p0) / self.sigma])
 
 
-class Datum(enum.StrEnum):
+class Datum(StrEnum):
     """How the network's datum is defined."""
 
     CONTROL = "control"  # exact (sigma 0) or weighted control points
@@ -658,7 +659,7 @@ class BundleProblem:
             pts = self.target_xyz[ctrl]
             spread = np.linalg.svd(pts - pts.mean(0), compute_uv=False) if len(ctrl) >= 3 else 0
             if len(ctrl) < 3 or spread[1] < 1e-6 * max(spread[0], 1e-12):
-                raise ValueError(
+                raise DatasetError(
                     f"the targets with a sigma ({len(ctrl)} observed) do not define a datum: "
                     "give sigma to at least 3 non-collinear targets, or to none (free network)"
                 )

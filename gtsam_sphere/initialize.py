@@ -57,6 +57,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .errors import InitialisationError
 from .p3p import ransac_pose
 
 __all__ = [
@@ -84,10 +85,6 @@ _ALPHA0_RAD = np.pi / 2  # scale of alpha in the refit polynomial (conditioning)
 _N_POLY = 4  # odd terms alpha, alpha^3, alpha^5, alpha^7 in the refit
 _MIN_INLIER_FRACTION = 0.5  # below this the hypothesis is "mostly rejected"
 _MAX_SCORED = 160  # observations per image when ranking hypotheses
-
-
-class InitialisationError(ValueError):
-    """No lens hypothesis explains the observations (or no image can be posed)."""
 
 
 def _rho(mapping: str, alpha: np.ndarray) -> np.ndarray:

@@ -6,7 +6,6 @@ shown and the cost history is kept (the paper's Figure 5).
 
 from __future__ import annotations
 
-import enum
 import math
 import sys
 import time
@@ -16,8 +15,10 @@ from dataclasses import dataclass, field
 import gtsam
 import numpy as np
 
+from ._compat import StrEnum
 
-class OptimizerKind(enum.StrEnum):
+
+class OptimizerKind(StrEnum):
     """Trust-region strategy."""
 
     LM = "lm"

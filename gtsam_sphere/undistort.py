@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from .dataset import DatasetError, write_bytes_atomic
+from .errors import OptionsError
 from .export import RayGrid, project_rays
 
 KINDS: tuple[str, ...] = ("perspective", "equirectangular", "cylindrical")
@@ -402,7 +403,7 @@ def write_image_atomic(path: str | os.PathLike, image: np.ndarray) -> Path:
     suffix = Path(path).suffix or ".png"
     ok, data = cv2.imencode(suffix, image)
     if not ok:
-        raise ValueError(f"{path}: OpenCV cannot write a {suffix!r} image")
+        raise OptionsError(f"{path}: OpenCV cannot write a {suffix!r} image")
     return write_bytes_atomic(path, data.tobytes())
 
 
@@ -412,9 +413,9 @@ def _parse_size(text: str | None) -> tuple[int, int] | None:
     try:
         w, h = (int(p) for p in text.lower().split("x"))
     except ValueError:
-        raise DatasetError(f"--size must look like 1920x1080, got {text!r}") from None
+        raise OptionsError(f"--size must look like 1920x1080, got {text!r}") from None
     if w <= 0 or h <= 0:
-        raise DatasetError(f"--size must be positive, got {text!r}")
+        raise OptionsError(f"--size must be positive, got {text!r}")
     return w, h
 
 
@@ -439,7 +440,7 @@ def add_cli_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run_cli(args) -> int:
-    """Run ``gtsam-sphere undistort``; 0 on success (bad input raises ``DatasetError``)."""
+    """Run ``gtsam-sphere undistort``; 0 on success (bad input raises an ``InputError``)."""
     import cv2
 
     from .calibration import load_calibration

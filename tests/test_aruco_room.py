@@ -99,6 +99,7 @@ def test_pixel_rays_interpolation_is_exact_enough():
     assert np.mean(np.isfinite(rays[..., 0])) > np.mean(np.isfinite(exact[..., 0])) - 0.01
 
 
+@pytest.mark.slow  # end-to-end
 def test_marker_corners_and_centres_match_the_truth(views):
     room, _, rendered = views
     board = BoardSpec.parse(BOARD)
@@ -159,6 +160,7 @@ def test_marker_corners_and_centres_match_the_truth(views):
     assert rms(me) < 0.02 and me.max() < 0.05
 
 
+@pytest.mark.slow  # end-to-end
 def test_detect_cli_and_calibrate_recover_the_lens(views, tmp_path):
     room, folder, rendered = views
     # survey: every marker centre with 3 mm noise per axis, and that sigma

@@ -99,12 +99,14 @@ def _shape_residual(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return scale * (R @ (a - ma).T).T + mb - b
 
 
+@pytest.mark.slow  # end-to-end
 def test_the_warp_shows_when_the_board_is_taken_as_exact():
     calib = _calibrate(None)
     assert calib.statistics["rms_px"] > 1.5 * NOISE_PX * np.sqrt(2)
     assert "target_shift_rms" not in calib.statistics
 
 
+@pytest.mark.slow  # end-to-end
 def test_control_sigma_recovers_the_lens_and_the_board_shape():
     exact, free = _calibrate(None), _calibrate(0.002)
     # residuals down to the simulated noise (2D RMS of N(0, 0.05) per axis = 0.071 px)
@@ -138,6 +140,7 @@ def test_bad_control_sigma_is_refused_with_its_value(bad):
         CalibrationOptions(control_sigma=bad)
 
 
+@pytest.mark.slow  # end-to-end
 def test_report_shows_the_board_shape(tmp_path):
     from gtsam_sphere.report import target_shifts_of, write_report
 

@@ -43,6 +43,7 @@ def _run(fov_deg, blunder_rate=0.0, sigma_mode="weighted", oracle=False, optimiz
 
 
 @pytest.mark.parametrize("fov_deg", [120.0, 200.0, 300.0])
+@pytest.mark.slow  # end-to-end
 def test_sphere_lens_intrinsics_within_three_sigma(fov_deg):
     sim, calib, _ = _run(fov_deg)
     lens = sim.truth["lens"]
@@ -62,12 +63,14 @@ def test_sphere_lens_intrinsics_within_three_sigma(fov_deg):
 
 
 @pytest.mark.parametrize("fov_deg", [120.0, 200.0, 300.0])
+@pytest.mark.slow  # end-to-end
 def test_checkpoint_rmse_close_to_oracle(fov_deg):
     _, _, rep = _run(fov_deg)
     _, _, oracle = _run(fov_deg, oracle=True)
     assert rep.rmse_3d <= 1.10 * oracle.rmse_3d, (rep.rmse_3d, oracle.rmse_3d)
 
 
+@pytest.mark.slow  # end-to-end
 def test_huber_resists_five_percent_blunders():
     _, _, clean = _run(200.0)
     sim, calib, rep = _run(200.0, blunder_rate=0.05)
@@ -78,6 +81,7 @@ def test_huber_resists_five_percent_blunders():
     assert found > 0.95, found
 
 
+@pytest.mark.slow  # end-to-end
 def test_ten_percent_blunders_are_listed_with_their_cause():
     """Issue 6: 10% mislabelled targets and gross offsets: found, classified, harmless."""
     _, _, clean = _run(200.0)
@@ -94,6 +98,7 @@ def test_ten_percent_blunders_are_listed_with_their_cause():
         assert o["residual_norm_px"] > 5 * calib.statistics["sigma_px"]
 
 
+@pytest.mark.slow  # end-to-end
 def test_l2_is_hurt_by_blunders_more_than_huber():
     sim = _sim(200.0, 0.05)
     ids, xyz = checkpoints_of(sim)
@@ -103,6 +108,7 @@ def test_l2_is_hurt_by_blunders_more_than_huber():
     assert evaluate_calibration(l2, ids, xyz).rmse_3d > 2 * huber.rmse_3d
 
 
+@pytest.mark.slow  # end-to-end
 def test_free_network_is_not_distorted_by_approximate_coordinates():
     sim, calib, rep = _run(200.0, sigma_mode="free")
     _, _, weighted = _run(200.0)
@@ -116,6 +122,7 @@ def test_free_network_is_not_distorted_by_approximate_coordinates():
     assert rep.rmse_3d < 1.5 * weighted.rmse_3d
 
 
+@pytest.mark.slow  # end-to-end
 def test_dogleg_matches_lm():
     _, lm, rep_lm = _run(120.0)
     _, dl, rep_dl = _run(120.0, optimizer="dogleg")

@@ -30,6 +30,7 @@ def small_room(tmp_path_factory):
     return sim, write_simulation(sim, out)
 
 
+@pytest.mark.slow  # end-to-end
 def test_calibrate_evaluate_and_reload(small_room, tmp_path, capsys):
     sim, paths = small_room
     calib_path = tmp_path / "calib.json"
@@ -66,6 +67,7 @@ def test_calibrate_evaluate_and_reload(small_room, tmp_path, capsys):
     assert "RMSE X / Y / Z (mm)" in capsys.readouterr().out
 
 
+@pytest.mark.slow  # end-to-end
 def test_default_model_unprojects_past_90_degrees_without_a_hemisphere(tmp_path):
     """The default (radial + kNN) on a 200 deg fisheye: unproject(uv) alone finds every ray."""
     from gtsam_sphere.simulate import gopro_like
@@ -108,6 +110,7 @@ def test_bad_dataset_exits_2_with_message(tmp_path, capsys):
 @pytest.mark.parametrize(
     "name", ["opencv_fisheye_left.dataset.json", "ov_plane_train.dataset.json"]
 )
+@pytest.mark.slow  # end-to-end
 def test_real_data_calibrates_with_every_corner(name, tmp_path):
     path = shared_data_file(name)
     doc = json.loads(path.read_text())
@@ -119,6 +122,7 @@ def test_real_data_calibrates_with_every_corner(name, tmp_path):
     assert stats["n_images_skipped"] == 0
 
 
+@pytest.mark.slow  # end-to-end
 def test_ctrl_c_leaves_the_previous_file_and_says_so(small_room, tmp_path, capsys, monkeypatch):
     """Issue 6: an interrupted run writes nothing and names the last good state."""
     import gtsam_sphere.calibrate as calibrate_module

@@ -3,6 +3,8 @@
 import numpy as np
 import pytest
 from sklearn.base import clone
+from sklearn.exceptions import NotFittedError
+from sklearn.utils.estimator_checks import parametrize_with_checks
 
 from gtsam_sphere.calibration import camera_from_dict
 from gtsam_sphere.camera import SphereCamera
@@ -116,3 +118,88 @@ def test_robust_sigma_of_2d_residual_norms():
     assert one == pytest.approx(1.0 / np.sqrt(2 * np.log(2)))
     assert robust_sigma_px(np.zeros(5), 0.005) == 0.005
     assert robust_sigma_px(np.array([np.nan]), 0.1) == 0.1
+
+
+# scikit-learn's estimator checks that cannot apply: they feed X of 1, 3, 4, 5 or 10
+# columns, or a single-output y, while the model maps raw pixels (u, v), two columns, to
+# a correction (dx, dy), two columns, and refuses any other shape with a ValueError.
+_NOT_TWO_PIXEL_COLUMNS = "X must be pixels (u, v): two columns; the check uses another number"
+_NOT_TWO_OUTPUTS = "y must be corrections (dx, dy): two columns; the check uses one"
+_EXPECTED_FAILED_CHECKS = {
+    name: _NOT_TWO_PIXEL_COLUMNS
+    for name in (
+        "check_fit_score_takes_y",
+        "check_dont_overwrite_parameters",
+        "check_n_features_in_after_fitting",
+        "check_positive_only_tag_during_fit",
+        "check_estimators_dtypes",
+        "check_dtype_object",
+        "check_pipeline_consistency",
+        "check_estimators_nan_inf",
+        "check_estimators_pickle",
+        "check_f_contiguous_array_estimator",
+        "check_regressors_train",
+        "check_regressor_data_not_an_array",
+        "check_regressor_multioutput",
+        "check_regressors_no_decision_function",
+        "check_regressors_int",
+        "check_methods_sample_order_invariance",
+        "check_methods_subset_invariance",
+        "check_fit2d_1sample",
+        "check_fit2d_1feature",
+        "check_dict_unchanged",
+        "check_fit2d_predict1d",
+    )
+} | {
+    name: _NOT_TWO_OUTPUTS
+    for name in (
+        "check_estimators_overwrite_params",
+        "check_estimators_fit_returns_self",
+        "check_readonly_memmap_input",
+        "check_fit_idempotent",
+        "check_fit_check_is_fitted",
+        "check_n_features_in",
+    )
+}
+
+
+@parametrize_with_checks(
+    [KNNCorrection()], expected_failed_checks=lambda estimator: _EXPECTED_FAILED_CHECKS
+)
+def test_scikit_learn_estimator_checks(estimator, check):
+    check(estimator)
+
+
+def test_fitted_state_follows_the_scikit_learn_contract():
+    rng = np.random.default_rng(5)
+    uv = rng.uniform(0, 1000, size=(300, 2))
+    model = KNNCorrection(random_state=0)
+    for use in (lambda: model.predict(uv), model.predict_without_self, model.to_dict):
+        with pytest.raises(NotFittedError):
+            use()
+    assert model.fit(uv, _field(uv)) is model
+    assert model.n_features_in_ == 2
+    fitted = [k for k in vars(model) if k not in model.get_params()]
+    assert fitted and all(k.endswith("_") for k in fitted), fitted
+    assert correction_from_dict(model.to_dict()).n_features_in_ == 2
+    with pytest.raises(ValueError, match="requires y"):
+        KNNCorrection().fit(uv, None)
+
+
+def test_n_neighbors_none_is_cross_validation_and_zero_is_deprecated():
+    rng = np.random.default_rng(6)
+    uv = rng.uniform(0, 1000, size=(400, 2))
+    y = _field(uv) + 0.1 * rng.normal(size=uv.shape)
+    chosen = KNNCorrection(n_neighbors=None, random_state=0).fit(uv, y)
+    assert len({k for _, k, _ in chosen.cv_scores_}) > 1  # every k of the grid was tried
+    with pytest.warns(FutureWarning, match="n_neighbors=None"):
+        old = KNNCorrection(n_neighbors=0, random_state=0).fit(uv, y)
+    assert old.cv_scores_ == chosen.cv_scores_ and old.n_neighbors_ == chosen.n_neighbors_
+    np.testing.assert_array_equal(old.predict(uv), chosen.predict(uv))
+    fixed = KNNCorrection(n_neighbors=5, weights="uniform").fit(uv, y)
+    assert fixed.n_neighbors_ == 5 and set(fixed.cv_scores_) == {(0, 5, "uniform")}
+    for bad in (-1, 2.5, "5", True):
+        with pytest.raises(ValueError, match="n_neighbors"):
+            KNNCorrection(n_neighbors=bad).fit(uv, y)
+    with pytest.raises(ValueError, match="weights"):
+        KNNCorrection(weights="gaussian").fit(uv, y)

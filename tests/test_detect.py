@@ -129,6 +129,7 @@ def test_parse_errors_name_the_bad_part(text, part):
 @pytest.mark.parametrize("lens_name", ["fisheye", "pinhole"])
 @pytest.mark.parametrize("pose", ["mild", "oblique"])
 @pytest.mark.parametrize("spec", ["chessboard:4x6:0.04", "charuco:5x7:0.04:0.03:DICT_4X4_50"])
+@pytest.mark.slow  # end-to-end
 def test_rendered_board_subpixel_accuracy(spec, pose, lens_name):
     board = BoardSpec.parse(spec)
     lens = FISHEYE if lens_name == "fisheye" else PINHOLE
@@ -279,6 +280,7 @@ def _render_views(tmp_path) -> list[str]:
     return paths
 
 
+@pytest.mark.slow  # end-to-end
 def test_detect_cli_recover(tmp_path, capsys):
     paths = _render_views(tmp_path)
     parser = argparse.ArgumentParser()
@@ -379,6 +381,7 @@ def test_detect_images_and_cli(tmp_path, capsys):
 
 
 @pytest.mark.parametrize("folder, square", [("fish_1", 0.0325), ("fish_2", 0.117)])
+@pytest.mark.slow  # end-to-end
 def test_real_fisheye_images(folder, square):
     all_images = sorted((DATA / "images" / folder).glob("*.jpg"))
     if not all_images:
@@ -422,6 +425,7 @@ def test_real_fisheye_every_corner_is_a_saddle():
         assert score.min() > 0.5, p.name
 
 
+@pytest.mark.slow  # end-to-end
 def test_rendered_images_to_calibration_recover_the_lens(tmp_path):
     """Issue 4: render -> detect (with recovery) -> calibrate recovers the simulated lens."""
     from gtsam_sphere.calibrate import CalibrationOptions, calibrate

@@ -85,6 +85,7 @@ def test_calibrate_twice_in_one_process_gives_identical_bytes(first_run):
     _assert_same_bytes(first, second)
 
 
+@pytest.mark.slow  # end-to-end
 def test_calibrate_in_a_fresh_process_with_another_hash_seed_gives_identical_bytes(first_run):
     dataset, first, rc_first = first_run
     third = first.with_name("third.json")

@@ -56,6 +56,7 @@ def room():
     return _room()
 
 
+@pytest.mark.slow  # end-to-end
 def test_healthy_room_has_no_fatal_problem_before_or_after_initialisation(room):
     from gtsam_sphere.calibrate import initialise
 

@@ -657,11 +657,6 @@ def test_wrong_shapes_raise_value_error_naming_the_shape(shape, fill):
             call(arr)
 
 
-def _radial_supported() -> bool:
-    return "radial" in SphereCamera.__dataclass_fields__
-
-
-@pytest.mark.skipif(not _radial_supported(), reason="SphereCamera has no radial mapping")
 @fuzz(150)
 @given(
     dirs=directions(),
@@ -885,6 +880,7 @@ def _degenerate(kind: str) -> dict:
         "huge coordinates",
     ],
 )
+@pytest.mark.slow  # end-to-end
 def test_cli_calibrate_degenerate_but_well_formed_datasets(kind, tmp_path):
     path = write_json_atomic(tmp_path / "dataset.json", _degenerate(kind))
     out = tmp_path / "calib.json"

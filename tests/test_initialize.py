@@ -207,6 +207,7 @@ def _check_case(data, res, expect_mapping, f_true, tol_deg=1.0, tol_m=0.05):
     assert not res.inlier_mask[~mask].any()
 
 
+@pytest.mark.slow  # end-to-end
 def test_equidistant_200deg_lens_with_two_observation_image():
     data = simulate(
         seed=10,
@@ -232,6 +233,7 @@ def test_equidistant_200deg_lens_with_two_observation_image():
     _check_case(data, res, "equidistant", 300.0)
 
 
+@pytest.mark.slow  # end-to-end
 def test_pinhole_70deg_lens():
     f_px = 500.0 / np.tan(np.radians(35.0))
     data = simulate(

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import cv2
 import numpy as np
 import pytest
 
@@ -123,7 +124,6 @@ def test_axes_conventions():
 
 
 def test_pinhole_matches_opencv():
-    cv2 = pytest.importorskip("cv2")
     lens = make_lens("pinhole", 75, W, H, k1=-0.1, k2=0.05, k3=0.01, p1=1e-3, p2=-5e-4)
     pts = np.random.default_rng(0).uniform(-1, 1, (50, 3)) + [0, 0, 3]
     k = np.array([[lens.f, 0, lens.cx], [0, lens.f, lens.cy], [0, 0, 1]])
@@ -133,7 +133,6 @@ def test_pinhole_matches_opencv():
 
 
 def test_kannala_brandt_matches_opencv_fisheye():
-    cv2 = pytest.importorskip("cv2")
     lens = make_lens("kannala-brandt", 150, W, H, k1=0.03, k2=-0.008, k3=0.001, k4=1e-4)
     pts = np.random.default_rng(1).uniform(-2, 2, (50, 3)) + [0, 0, 1]
     pts = pts[pts[:, 2] > 0.2]

@@ -136,6 +136,7 @@ def _check_outputs(paths):
     return md, page
 
 
+@pytest.mark.slow  # end-to-end
 def test_full_report(tmp_path):
     calib = synthetic_calibration(correction=True, cv=True)
     paths = write_report(calib, tmp_path / "rep", title="Synthetic | test")
@@ -150,6 +151,7 @@ def test_full_report(tmp_path):
     assert md.count("| yes |") >= 5
 
 
+@pytest.mark.slow  # end-to-end
 def test_missing_optional_parts(tmp_path):
     class Zero:
         def predict(self, uv_px):
@@ -173,9 +175,8 @@ def test_missing_optional_parts(tmp_path):
     _check_outputs(write_report(calib, tmp_path / "b"))
 
 
+@pytest.mark.slow  # end-to-end
 def test_file_round_trip_cli_and_compare(tmp_path):
-    # load_calibration imports the correction module
-    pytest.importorskip("gtsam_sphere.correct")
     a = synthetic_calibration(seed=1)
     b = synthetic_calibration(seed=2, correction=False, slope_y=1e-3)
     pa = a.save(tmp_path / "a.json")

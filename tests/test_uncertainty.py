@@ -180,6 +180,7 @@ def _calibration(stats: dict) -> Calibration:
     )
 
 
+@pytest.mark.slow  # end-to-end
 def test_uncertainty_of_a_calibration_and_its_report_section(tmp_path):
     calib = _calibration(
         {"intrinsics_covariance": covariance().tolist(), "intrinsics_names": NAMES}
@@ -260,6 +261,7 @@ def _monte_carlo_compensated(cam, cov, names, m, range_m, fit_ranges, n_draws, s
     [(None, None), (1.5, [1.0, 2.0, 4.0])],
     ids=["rotation", "three-shells"],
 )
+@pytest.mark.slow  # end-to-end
 def test_compensated_map_matches_monte_carlo_with_a_fitted_motion(range_m, fit_ranges):
     cam, cov = brown_camera(), covariance()
     m = uncertainty_map(

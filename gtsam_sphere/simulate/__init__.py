@@ -208,10 +208,19 @@ def run_cli(args: argparse.Namespace) -> int:
     """
     import sys
 
+    from ..errors import InputError
+
     try:
         options = options_from_args(args)
-        sim = simulate_room(options)
+        # the option checks alone (a ValueError from anywhere else is a bug: no catch-all)
+        options.validate()
+        build_lens(options)
     except ValueError as exc:
+        print(f"gtsam-sphere simulate: error: {exc}", file=sys.stderr)
+        return 2
+    try:
+        sim = simulate_room(options)
+    except InputError as exc:  # e.g. no pose sees enough targets with these options
         print(f"gtsam-sphere simulate: error: {exc}", file=sys.stderr)
         return 2
     paths = write_simulation(sim, args.out)

@@ -42,6 +42,7 @@ from typing import Any
 
 import numpy as np
 
+from ..errors import OptionsError
 from .lenses import ErrorField, NonCentral, make_lens
 from .scenes import (
     AimedPoses,
@@ -461,7 +462,7 @@ def _shoot(options: SimulationOptions, lens: Any, scene: _Scene, rng: np.random.
                 break
         keep, uv, alpha, R, t, centre, label = best
         if keep.size < options.min_targets_per_image:
-            raise ValueError(
+            raise OptionsError(
                 f"image {j + 1}: no pose in 1000 tries sees {options.min_targets_per_image} "
                 "targets; increase n_targets or fov_deg"
             )
