@@ -81,15 +81,13 @@ def _add_calibration_options(p: argparse.ArgumentParser) -> None:
 
 
 def _control_sigma_arg(text: str):
+    """``auto`` or a number; anything else is left to the options' own check (exit 2)."""
     if text.strip().lower() == "auto":
         return "auto"
     try:
-        value = float(text)
+        return float(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number or 'auto', got {text!r}") from None
-    if not (value > 0 and value < float("inf")):
-        raise argparse.ArgumentTypeError(f"must be a positive number, got {text!r}")
-    return value
+        return text
 
 
 def _options_from_args(args):
