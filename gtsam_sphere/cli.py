@@ -46,7 +46,14 @@ def _add_calibration_options(p: argparse.ArgumentParser) -> None:
         "--radial-terms",
         type=int,
         default=4,
-        help="coefficients g3, g5, ... of the radial mapping (radial models, 0-6)",
+        help="coefficients g3, g5, ... of the radial mapping (radial models, 0-6): the most "
+        "that may be used; those the data cannot support are dropped unless --all-terms",
+    )
+    p.add_argument(
+        "--all-terms",
+        action="store_true",
+        help="keep every radial and --ap term even where the data cannot support it "
+        "(default: dropped by a Wald test with a BIC penalty, docs/conventions.md)",
     )
     p.add_argument("--optimizer", choices=[o.value for o in OptimizerKind], default="lm")
     p.add_argument("--loss", choices=[x.value for x in Loss], default="huber")
@@ -103,6 +110,7 @@ def _options_from_args(args):
             model=Model(args.model),
             brown_terms=brown_terms,
             radial_terms=args.radial_terms,
+            select_terms=not getattr(args, "all_terms", False),
             optimizer=OptimizerKind(args.optimizer),
             loss=Loss(args.loss),
             loss_threshold=args.loss_threshold,

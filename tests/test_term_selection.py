@@ -1,0 +1,48 @@
+"""Term selection (calibrate.select_terms): needless intrinsics are dropped, real ones kept."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from gtsam_sphere.calibrate import CalibrationOptions, calibrate
+from gtsam_sphere.dataset import parse_dataset
+from gtsam_sphere.geometry import fit_similarity
+from gtsam_sphere.simulate import SimulationOptions, simulate_room
+
+
+def _station_error_m(calib, sim) -> float:
+    """RMS camera-centre error (m) after a similarity onto the true stations."""
+    truth = {im["id"]: im for im in sim.truth["images"]}
+    est = [-R.T @ t for R, t in zip(calib.cam_from_world_R, calib.cam_from_world_t)]
+    ref = [np.asarray(truth[iid]["centre_world"], float) for iid in calib.image_ids]
+    est, ref = np.array(est), np.array(ref)
+    sim_ = fit_similarity(est, ref)
+    return float(np.sqrt(np.mean(np.sum((sim_.apply(est) - ref) ** 2, axis=1))))
+
+
+@pytest.mark.slow
+def test_needless_terms_are_dropped_and_the_board_network_improves():
+    """An equidistant lens on a board: g3..g9 and p1..a2 are noise; dropping them helps."""
+    sim = simulate_room(
+        SimulationOptions(lens="equidistant", fov_deg=90.0, width=1600, height=1200,
+                          scene="board", n_images=16, seed=5)
+    )  # fmt: skip
+    ds = parse_dataset(sim.dataset)
+    selected = calibrate(ds, CalibrationOptions(covariance=False))
+    everything = calibrate(ds, CalibrationOptions(covariance=False, select_terms=False))
+    kept = selected.statistics["intrinsics_names"]
+    assert len(kept) < len(everything.statistics["intrinsics_names"]), kept
+    assert "g9" not in kept
+    assert _station_error_m(selected, sim) < _station_error_m(everything, sim)
+
+
+@pytest.mark.slow
+def test_real_distortion_keeps_its_terms():
+    """The paper's GoPro-like Kannala-Brandt lens: its radial terms are real and kept."""
+    from gtsam_sphere.simulate import gopro_like
+
+    sim = simulate_room(gopro_like(seed=1, n_images=24))
+    calib = calibrate(parse_dataset(sim.dataset), CalibrationOptions(covariance=False))
+    kept = calib.statistics["intrinsics_names"]
+    assert {"g3", "g5"} <= set(kept), kept
