@@ -551,23 +551,7 @@ def test_simulated_rig_back_to_back_without_shared_targets():
 # -- real data: OpenCV's omnidirectional stereo pair --------------------------------
 
 
-#: what the known initialisation bug looks like in ``statistics.distrust`` (see below)
-_INIT_BUG_SIGNS = (
-    "the radial mapping folds at",
-    "did not converge",
-    "normal equations are singular",
-)
-
-
 @pytest.mark.slow
-@pytest.mark.xfail(
-    strict=False,
-    raises=AssertionError,
-    reason="known bug in the single-camera initialisation (initialize.py, being fixed "
-    "separately) on these catadioptric cameras: cam0 converges to a folded radial mapping "
-    "(RMS 226 px, 15 deg field, untrusted) so the rig exits 1 and its extrinsics are wrong; "
-    "cam1 calibrates (0.395 px)",
-)
 def test_opencv_omnidir_stereo_rig(tmp_path, capsys):
     """Calibrate the real stereo pair as a rig; OpenCV's references (../shared/data/README.md):
     per-camera omnidir RMS 0.439 / 0.407 px, baseline 160.5 mm, rotation 7.93 deg."""
@@ -589,12 +573,7 @@ def test_opencv_omnidir_stereo_rig(tmp_path, capsys):
     )
     assert calib.statistics["n_frames"] == 39
     assert calib.statistics["rig_adjustment"] == RIG_ADJUSTMENT
-    # an untrusted result must be the known initialisation bug (expected failure), not
-    # something else (a real failure)
-    distrust = calib.statistics["distrust"]
-    if code == 1 and not all(any(s in r for s in _INIT_BUG_SIGNS) for r in distrust):
-        pytest.fail(f"untrusted for another reason than the known initialisation bug: {distrust}")
-    assert code == 0, distrust
+    assert code == 0, calib.statistics["distrust"]
     assert rms["cam0"] < 0.439 and rms["cam1"] < 0.407
     assert np.linalg.norm(t) == pytest.approx(0.1605, abs=0.003)
     assert np.degrees(rotation_angle(R)) == pytest.approx(7.93, abs=0.3)
