@@ -1,0 +1,131 @@
+"""The package's layers and the direction of its imports (issue 14), checked on the source.
+
+Layers, lowest first (docs/conventions.md, "Layers"): a module may import its own layer and
+the layers below it, never above, whether the import is at the top of the file or inside a
+function. The arrows that still point up are listed in ``KNOWN_UPWARD`` (debt to remove
+while the package moves into layer folders): the test fails on any new one, and on a listed
+one that has gone (so the list only shrinks).
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+PACKAGE = Path(__file__).resolve().parents[1] / "gtsam_sphere"
+
+LAYERS: dict[str, int] = {
+    # 0 core: numpy (and gtsam types) only, no I/O
+    "_compat": 0, "errors": 0, "geometry": 0, "camera": 0, "p3p": 0,
+    "simulate.lenses": 0, "simulate.scenes": 0,
+    # 1 io: formats and files
+    "dataset": 1, "calibration": 1,
+    # 2 estimation: factors, solvers, initialisation, corrections, calibration runs
+    "graph": 2, "optimize": 2, "initialize": 2, "resect": 2, "correct": 2,
+    "diagnose": 2, "calibrate": 2, "rig": 2, "external": 2,
+    # 3 analysis
+    "evaluate": 3, "uncertainty": 3, "compare": 3,
+    # 4 apps and the simulator (which calibrates its oracle)
+    "report": 4, "export": 4, "undistort": 4, "detect": 4, "simulate": 4,
+    "simulate.room": 4, "simulate.oracle": 4, "simulate.render": 4, "simulate.building": 4,
+    # 5 command line and the package's front door
+    "cli": 5, "__main__": 5, "": 5,
+}  # fmt: skip
+
+KNOWN_UPWARD = {
+    ("calibration", "correct"),  # load_calibration rebuilds the kNN correction
+    ("calibration", "external"),
+    ("uncertainty", "export"),  # ray helpers live in export
+    ("uncertainty", ""),
+}
+
+KNOWN_CYCLES = [
+    # the kNN loop (correct) calls the adjustment (calibrate) and is called by it, and
+    # load_calibration (calibration) rebuilds the kNN correction: all inside functions
+    {"calibration", "calibrate", "correct"},
+]
+
+
+def _modules() -> dict[str, Path]:
+    out = {}
+    for path in PACKAGE.rglob("*.py"):
+        parts = path.relative_to(PACKAGE).with_suffix("").parts
+        name = ".".join(p for p in parts if p != "__init__")
+        out[name] = path
+    return out
+
+
+def _imports(name: str, path: Path, modules) -> set[str]:
+    """Package modules ``name`` imports (relative imports, anywhere in the file)."""
+    package = name.split(".")[:-1] if path.name != "__init__.py" else name.split(".")
+    package = [p for p in package if p]
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if not isinstance(node, ast.ImportFrom) or not node.level:
+            continue
+        base = package[: len(package) - (node.level - 1)] if node.level > 1 else package
+        target = ".".join([*base, *([node.module] if node.module else [])])
+        if target in modules:
+            found.add(target)
+        for alias in node.names:  # from . import x
+            sub = ".".join(p for p in (target, alias.name) if p)
+            if sub in modules:
+                found.add(sub)
+    return found
+
+
+def test_every_module_has_a_layer():
+    assert set(_modules()) == set(LAYERS), set(_modules()) ^ set(LAYERS)
+
+
+def test_imports_point_down():
+    modules = _modules()
+    upward = set()
+    for name, path in modules.items():
+        for target in _imports(name, path, modules):
+            if LAYERS[target] > LAYERS[name]:
+                upward.add((name, target))
+    assert upward - KNOWN_UPWARD == set(), f"new upward imports: {sorted(upward - KNOWN_UPWARD)}"
+    gone = KNOWN_UPWARD - upward
+    assert gone == set(), f"gone, remove from KNOWN_UPWARD: {sorted(gone)}"
+
+
+def _cycles(graph: dict[str, set[str]]) -> list[set[str]]:
+    """Strongly connected components with more than one module (Tarjan)."""
+    index, low, stack, on, out, counter = {}, {}, [], set(), [], [0]
+
+    def visit(v):
+        index[v] = low[v] = counter[0]
+        counter[0] += 1
+        stack.append(v)
+        on.add(v)
+        for w in graph[v]:
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = set()
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                comp.add(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                out.append(comp)
+
+    for v in graph:
+        if v not in index:
+            visit(v)
+    return out
+
+
+def test_no_new_import_cycles():
+    modules = _modules()
+    graph = {n: _imports(n, p, modules) - {""} for n, p in modules.items()}
+    cycles = _cycles(graph)
+    new = [c for c in cycles if c not in KNOWN_CYCLES]
+    assert not new, f"new import cycles: {new}"
+    assert all(c in cycles for c in KNOWN_CYCLES), f"gone, update KNOWN_CYCLES: {cycles}"
