@@ -484,7 +484,9 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seed", type=int, default=0, help="seed of the case list (default 0)")
     ap.add_argument("--quick", action="store_true", help=f"only {len(QUICK)} diverse cases")
-    ap.add_argument("--only", default=None, metavar="SUBSTRING", help="cases whose id has it")
+    ap.add_argument(
+        "--only", default=None, metavar="SUBSTRING[,...]", help="cases whose id has one of them"
+    )
     ap.add_argument("--list", action="store_true", help="list the cases and exit")
     ap.add_argument("--json", default=None, metavar="OUT", help="save the rows as JSON")
     ap.add_argument("--verbose", action="store_true", help="echo calibration progress")
@@ -495,7 +497,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.quick:
         cases = quick_cases(cases)
     if args.only:
-        cases = [c for c in cases if args.only in c.id]
+        wanted = [w for w in args.only.split(",") if w]
+        cases = [c for c in cases if any(w in c.id for w in wanted)]
     if args.list:
         for c in cases:
             print(

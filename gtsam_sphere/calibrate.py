@@ -66,7 +66,8 @@ class CalibrationOptions:
         default: k1,k2,k3,p1,p2 for ``brown``; decentering and affinity
         p1,p2,a1,a2 for ``radial`` (which only takes the non-radial terms).
     radial_terms : int
-        Number of coefficients ``g3, g5, ...`` of the radial mapping (0-6).
+        Most coefficients ``g3, g5, ...`` of the radial mapping (0-6); with
+        ``select_terms`` those the data cannot support are dropped.
     optimizer : OptimizerKind
     loss : Loss
     loss_threshold : float
@@ -105,7 +106,7 @@ class CalibrationOptions:
     knn: dict = field(default_factory=dict)
     fixed_intrinsics: tuple[float, ...] | None = None
     covariance: bool = True
-    radial_terms: int = 4
+    radial_terms: int = 6
     control_sigma: float | str | None = "auto"
     select_terms: bool = True
 
@@ -591,32 +592,13 @@ def with_control_sigma(
     return replace(dataset, target_sigma=sigma)
 
 
-def calibrate(
+def _calibrate_once(
     dataset: Dataset,
     options: CalibrationOptions | None = None,
     progress: Callable[[str], None] | None = None,
     init: Initialisation | None = None,
-) -> Calibration:
-    """Calibrate the camera of ``dataset``: initialise, adjust, (learn corrections).
-
-    Parameters
-    ----------
-    dataset : Dataset
-        A validated ``dataset@1``.
-    options : CalibrationOptions
-    progress : callable(str), optional
-        Receives progress lines (the CLI prints them on standard error).
-    init : Initialisation, optional
-        Reuse an initialisation (:func:`initialise`) of the same dataset.
-
-    Returns
-    -------
-    Calibration
-        Adjusted poses (``cam_from_world``), targets and the camera model,
-        with statistics. For a free network (no target sigma) the result is
-        S-transformed onto the approximate coordinates (inner-constraint
-        datum: the approximations fix the datum and nothing else).
-    """
+) -> tuple[Calibration, Initialisation]:
+    """One calibration run (see :func:`calibrate`); returns it and its initialisation."""
     options = options or CalibrationOptions()
     say = progress or (lambda _line: None)
     rng = np.random.default_rng(options.seed)
@@ -723,8 +705,6 @@ def calibrate(
         )
     calib.statistics["distrust"] = distrust_reasons(calib, cov_theta, options, problem)
     calib.statistics["trusted"] = not calib.statistics["distrust"]
-    for reason in calib.statistics["distrust"]:
-        logger.warning("do not trust this result: %s", reason)
     calib.extra["geometry_warnings"] = [
         {"code": str(p.code), "message": p.message, "advice": p.advice} for p in geometry
     ]
@@ -735,6 +715,68 @@ def calibrate(
             zip(names, map(float, np.sqrt(np.diag(cov_theta))))
         )
         calib.statistics["intrinsics_covariance"] = cov_theta
+    return calib, init
+
+
+def _folds_inside(calib: Calibration) -> bool:
+    """The radial mapping stops increasing inside the observed field."""
+    cam = calib.camera
+    return cam.radial is not None and bool(
+        np.degrees(cam.max_alpha_rad()) < calib.statistics["max_incidence_deg"]
+    )
+
+
+def calibrate(
+    dataset: Dataset,
+    options: CalibrationOptions | None = None,
+    progress: Callable[[str], None] | None = None,
+    init: Initialisation | None = None,
+) -> Calibration:
+    """Calibrate the camera of ``dataset``: initialise, adjust, (learn corrections).
+
+    Parameters
+    ----------
+    dataset : Dataset
+        A validated ``dataset@1``.
+    options : CalibrationOptions
+    progress : callable(str), optional
+        Receives progress lines (the CLI prints them on standard error).
+    init : Initialisation, optional
+        Reuse an initialisation (:func:`initialise`) of the same dataset.
+
+    Returns
+    -------
+    Calibration
+        Adjusted poses (``cam_from_world``), targets and the camera model,
+        with statistics. For a free network (no target sigma) the result is
+        S-transformed onto the approximate coordinates (inner-constraint
+        datum: the approximations fix the datum and nothing else). When a
+        radial model's mapping folds inside the observed field (a lens that
+        folds, like an orthographic one past 180 deg) the sphere model is
+        tried from the same initialisation and kept if it can be trusted
+        (``statistics.model_fallback`` says so).
+    """
+    options = options or CalibrationOptions()
+    say = progress or (lambda _line: None)
+    calib, init = _calibrate_once(dataset, options, progress, init)
+    if options.model.uses_radial and not calib.statistics["trusted"] and _folds_inside(calib):
+        # a lens whose image folds (an orthographic lens past 180 deg: rays behind the
+        # camera land inside the disc again) has no increasing radial mapping; the
+        # sphere model holds it
+        fallback = Model.SPHERE_KNN if options.model.uses_knn else Model.SPHERE
+        say(
+            f"the radial mapping folds inside the observed field: calibrating again with "
+            f"the {fallback} model (a lens that folds, e.g. orthographic past 180 deg)"
+        )
+        alt, _ = _calibrate_once(dataset, replace(options, model=fallback), progress, init)
+        if alt.statistics["trusted"]:
+            alt.statistics["model_fallback"] = (
+                f"{options.model} -> {fallback}: the radial mapping folded inside the "
+                "observed field"
+            )
+            calib = alt
+    for reason in calib.statistics["distrust"]:
+        logger.warning("do not trust this result: %s", reason)
     return calib
 
 

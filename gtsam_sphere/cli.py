@@ -45,7 +45,7 @@ def _add_calibration_options(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--radial-terms",
         type=int,
-        default=4,
+        default=6,
         help="coefficients g3, g5, ... of the radial mapping (radial models, 0-6): the most "
         "that may be used; those the data cannot support are dropped unless --all-terms",
     )

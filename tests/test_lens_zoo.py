@@ -4,8 +4,10 @@ prior knowledge of the lens, a trusted result within 1.15x of the oracle.
 The cases are the zoo's own (same builder, same seeds), chosen to span the scenes and the
 image circles: a 250 deg equidistant lens on a circle of 0.4 x the short side with its
 principal point 10 % / 6 % off the centre (the room), a 340 deg equisolid lens on a
-cropped circle and a 200 deg orthographic (sphere) lens on a 3D object, and a 220 deg
-catadioptric (unified) lens in the room.
+cropped circle and a 200 deg orthographic (sphere) lens on a 3D object, a 250 deg
+orthographic lens whose image folds (the radial model folds with it: the sphere model
+takes over, ``statistics.model_fallback``), and a 220 deg catadioptric (unified) lens in
+the room.
 """
 
 from __future__ import annotations
@@ -33,6 +35,7 @@ SUBSET = (
     "11-equidistant-250-room-r0.4s",
     "20-equisolid-340-object3d-r1.3d",
     "32-sphere-200-object3d-r1.3d",
+    "33-sphere-250-room-r0.25s",
     "46-unified-220-room-r1.3d",
 )
 
