@@ -718,12 +718,18 @@ def _calibrate_once(
     return calib, init
 
 
-def _folds_inside(calib: Calibration) -> bool:
-    """The radial mapping stops increasing inside the observed field."""
+def _folds_like_a_sphere(calib: Calibration) -> bool:
+    """The radial mapping stops increasing inside the observed field, near 90 degrees,
+    with rays observed past 90 degrees: what a lens that folds (an orthographic lens
+    past 180 deg) looks like. A fold anywhere else is a model that does not fit, and
+    the sphere model would only hide it behind large kNN corrections (a 150 deg
+    pinhole lens "calibrated" by sphere+knn: trusted, 94x the oracle's error)."""
     cam = calib.camera
-    return cam.radial is not None and bool(
-        np.degrees(cam.max_alpha_rad()) < calib.statistics["max_incidence_deg"]
-    )
+    if cam.radial is None:
+        return False
+    fold_deg = float(np.degrees(cam.max_alpha_rad()))
+    seen_deg = float(calib.statistics["max_incidence_deg"])
+    return fold_deg < seen_deg and 80.0 <= fold_deg <= 100.0 and seen_deg > 90.0
 
 
 def calibrate(
@@ -759,7 +765,11 @@ def calibrate(
     options = options or CalibrationOptions()
     say = progress or (lambda _line: None)
     calib, init = _calibrate_once(dataset, options, progress, init)
-    if options.model.uses_radial and not calib.statistics["trusted"] and _folds_inside(calib):
+    if (
+        options.model.uses_radial
+        and not calib.statistics["trusted"]
+        and _folds_like_a_sphere(calib)
+    ):
         # a lens whose image folds (an orthographic lens past 180 deg: rays behind the
         # camera land inside the disc again) has no increasing radial mapping; the
         # sphere model holds it
