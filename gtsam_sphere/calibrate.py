@@ -671,15 +671,7 @@ def _calibrate_once(
     )
     repaired = repair_poses(problem, adj, dataset, rng, say)
     if repaired:
-        consistent = np.linalg.norm(adj.residuals_px, axis=1) < 5.0 * adj.sigma_px
-        adj = adjust(
-            problem,
-            adj.values,
-            opt,
-            say,
-            estimate_sigma=options.sigma_px is None,
-            first_stage_mask=consistent,
-        )
+        adj = readjust(problem, adj, opt, say, options.sigma_px is None)
     if control_sigma is not None and options.control_sigma == CONTROL_SIGMA_AUTO:
         problem, adj, control_sigma = refine_control_sigma(
             problem, adj, exact_targets, control_sigma, opt, say, options.sigma_px is None
@@ -790,6 +782,25 @@ def calibrate(
     return calib
 
 
+def readjust(
+    problem: BundleProblem,
+    adj: Adjustment,
+    optimizer: OptimizerOptions,
+    say: Callable[[str], None],
+    estimate_sigma: bool = True,
+    values: gtsam.Values | None = None,
+) -> Adjustment:
+    """Adjust ``problem`` again from ``adj``'s state (or ``values``), its first stage on
+    the observations ``adj`` left within 5 sigma (after a pose repair, a new target
+    prior or fewer intrinsics)."""
+    consistent = np.linalg.norm(adj.residuals_px, axis=1) < 5.0 * adj.sigma_px
+    start = gtsam.Values(adj.values) if values is None else values
+    return adjust(
+        problem, start, optimizer, say, estimate_sigma=estimate_sigma,
+        first_stage_mask=consistent,
+    )
+
+
 def refine_control_sigma(
     problem: BundleProblem,
     adj: Adjustment,
@@ -838,11 +849,7 @@ def refine_control_sigma(
         target_sigma = problem.target_sigma.copy()
         target_sigma[exact] = sigma
         problem = replace(problem, target_sigma=target_sigma)
-        consistent = np.linalg.norm(adj.residuals_px, axis=1) < 5.0 * adj.sigma_px
-        adj = adjust(
-            problem, gtsam.Values(adj.values), optimizer, say,
-            estimate_sigma=estimate_sigma, first_stage_mask=consistent,
-        )
+        adj = readjust(problem, adj, optimizer, say, estimate_sigma)
         control_sigma = sigma
     return problem, adj, control_sigma
 
@@ -912,12 +919,7 @@ def select_terms(
         f"terms the data do not support (Wald test, BIC penalty): {', '.join(drop)}; "
         "adjusting without them"
     )
-    consistent = np.linalg.norm(adj.residuals_px, axis=1) < 5.0 * adj.sigma_px
-    again = adjust(
-        reduced, values, optimizer, say, estimate_sigma=estimate_sigma,
-        first_stage_mask=consistent,
-    )
-    return reduced, again
+    return reduced, readjust(reduced, adj, optimizer, say, estimate_sigma, values)
 
 
 def distrust_reasons(calib: Calibration, cov_theta, options, problem: BundleProblem) -> list[str]:

@@ -53,7 +53,7 @@ noise seen from 2-4 m move by 0.0025-0.005 rad, which ``threshold_rad = 0.01`` k
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -455,19 +455,14 @@ def _focal_grid(mapping: str, r_obs_px: float) -> np.ndarray:
     return np.geomspace(f_lo, f_hi, n)
 
 
-def _with_f(hyp: LensHypothesis, f_px: float) -> LensHypothesis:
-    return LensHypothesis(hyp.mapping, float(f_px), hyp.principal_point_px, hyp.coeffs,
-                          hyp.alpha_max_rad)
-
-
 def _focal_scan(problem, images, seeds, hyp, thr_px):
     """13 values of ``log f`` over one coarse step either side of ``hyp.f_px`` (2.3 %
     apart), no pose refinement. Returns ``(hypothesis, cost)`` of the best value."""
     half = np.log(_GRID_RATIO)
     xs = np.log(hyp.f_px) + np.linspace(-half, half, 13)
-    cs = [problem.cost(images, seeds, _with_f(hyp, np.exp(x)), thr_px, 64, False) for x in xs]
+    cs = [problem.cost(images, seeds, replace(hyp, f_px=np.exp(x)), thr_px, 64, False) for x in xs]
     j = int(np.argmin(cs))
-    return _with_f(hyp, np.exp(xs[j])), float(cs[j])
+    return replace(hyp, f_px=np.exp(xs[j])), float(cs[j])
 
 
 def _focal_zoom(problem, images, seeds, hyp, thr_px):
@@ -475,7 +470,7 @@ def _focal_zoom(problem, images, seeds, hyp, thr_px):
     step in ``log f``. Returns ``(hypothesis, cost)``."""
     h = np.log(_GRID_RATIO) / 24.0
     x2 = np.log(hyp.f_px) + h * np.arange(-2, 3)
-    c2 = [problem.cost(images, seeds, _with_f(hyp, np.exp(x)), thr_px, 300, True) for x in x2]
+    c2 = [problem.cost(images, seeds, replace(hyp, f_px=np.exp(x)), thr_px, 300, True) for x in x2]
     j = int(np.argmin(c2))
     xs, cs = list(x2), list(c2)
     if 0 < j < len(c2) - 1:
@@ -484,14 +479,10 @@ def _focal_zoom(problem, images, seeds, hyp, thr_px):
         if den > 0:
             x_new = x2[j] + 0.5 * h * (y0 - y2) / den
             xs.append(x_new)
-            cs.append(problem.cost(images, seeds, _with_f(hyp, np.exp(x_new)), thr_px, 300, True))
+            new = replace(hyp, f_px=np.exp(x_new))
+            cs.append(problem.cost(images, seeds, new, thr_px, 300, True))
     k = int(np.argmin(cs))
-    return _with_f(hyp, np.exp(xs[k])), float(cs[k])
-
-
-def _with_pp(hyp: LensHypothesis, pp) -> LensHypothesis:
-    return LensHypothesis(hyp.mapping, hyp.f_px, np.asarray(pp, float), hyp.coeffs,
-                          hyp.alpha_max_rad)
+    return replace(hyp, f_px=np.exp(xs[k])), float(cs[k])
 
 
 def _pp_search(problem, images, seeds, hyp, thr_px, size, quick_images, quick_seeds):
@@ -508,7 +499,8 @@ def _pp_search(problem, images, seeds, hyp, thr_px, size, quick_images, quick_se
     size = np.asarray(size, float)
     centre = hyp.principal_point_px
     steps = np.arange(-4, 5) * 0.03
-    grid = [_with_pp(hyp, centre + size * [dx, dy]) for dx in steps for dy in steps]
+    offsets = [size * [dx, dy] for dx in steps for dy in steps]
+    grid = [replace(hyp, principal_point_px=centre + o) for o in offsets]
     quick = [problem.cost(quick_images, quick_seeds, h, thr_px, 64, False) for h in grid]
     shortlist = [grid[k] for k in np.argsort(quick)[:3]]
     scored = [(problem.cost(images, seeds, h, thr_px, 300, True), k, h)
@@ -519,7 +511,7 @@ def _pp_search(problem, images, seeds, hyp, thr_px, size, quick_images, quick_se
         for dy in (-0.01, 0.0, 0.01):
             if dx == 0 and dy == 0:
                 continue
-            cand = _with_pp(best, centre + size * [dx, dy])
+            cand = replace(best, principal_point_px=centre + size * [dx, dy])
             c = problem.cost(images, seeds, cand, thr_px, 300, True)
             if c < best_cost:
                 best, best_cost = cand, c
