@@ -18,7 +18,7 @@ does with no options (the dataset goes through a file and the CLI's own
 parser builds the options), and once with the true lens known (the oracle,
 :mod:`gtsam_sphere.simulate.oracle`). Success is the CLI's exit 0: converged
 and ``statistics["trusted"]``. Accuracy is the 3D RMSE after a 7-parameter
-similarity (:mod:`gtsam_sphere.evaluate`) of the room's check points, or of
+similarity (:mod:`gtsam_sphere.analysis.evaluate`) of the room's check points, or of
 the camera stations for the board and the cube corner (whose targets are
 exact control, so their check points carry no information), and its ratio to
 the oracle's. A failure of any kind is a row with the exception, never the
@@ -263,8 +263,8 @@ def _default_calibration(dataset_path: Path, out_path: Path, progress):
     Returns the calibration and the CLI's exit status (0 trusted, 1 not).
     """
     from gtsam_sphere import cli
-    from gtsam_sphere.calibrate import calibrate
-    from gtsam_sphere.dataset import load_dataset
+    from gtsam_sphere.estimation.calibrate import calibrate
+    from gtsam_sphere.io.dataset import load_dataset
 
     args = cli.build_parser().parse_args(["calibrate", str(dataset_path), "-o", str(out_path)])
     dataset = load_dataset(args.dataset)
@@ -283,7 +283,7 @@ def _stations(calib) -> tuple[list[str], np.ndarray]:
 
 def _rmse_3d(calib, sim, what: str) -> float:
     """3D RMSE (metres) after a similarity: check points or camera stations."""
-    from gtsam_sphere.evaluate import evaluate_calibration, evaluate_checkpoints
+    from gtsam_sphere.analysis.evaluate import evaluate_calibration, evaluate_checkpoints
 
     if what == "checkpoints":
         ids = [t["id"] for t in sim.checkpoints["targets"]]

@@ -54,9 +54,8 @@ import gtsam
 import numpy as np
 
 from gtsam_sphere import graph as graph_module
-from gtsam_sphere.calibrate import initial_principal_distance, initial_values
-from gtsam_sphere.dataset import parse_dataset
-from gtsam_sphere.graph import (
+from gtsam_sphere.estimation.calibrate import initial_principal_distance, initial_values
+from gtsam_sphere.estimation.graph import (
     INTRINSICS_KEY,
     BundleProblem,
     NoiseOptions,
@@ -64,7 +63,8 @@ from gtsam_sphere.graph import (
     point_key,
     pose_key,
 )
-from gtsam_sphere.optimize import make_ordering
+from gtsam_sphere.estimation.optimize import make_ordering
+from gtsam_sphere.io.dataset import parse_dataset
 from gtsam_sphere.simulate import gopro_like, simulate_room
 
 CALIB_KEY = gtsam.symbol("K", 0)  # Cal3Fisheye of the built-in graph

@@ -7,14 +7,14 @@ refined from a perturbed start (poses 0.3 deg and 3 cm, landmarks 5 cm) with
 a prior on the first pose and noisy odometry between consecutive poses
 (0.1 deg, 1 cm). Paths:
 
-- ``bearing``: :func:`gtsam_sphere.external.make_bearing_factors` (pixels ->
+- ``bearing``: :func:`gtsam_sphere.estimation.external.make_bearing_factors` (pixels ->
   unit rays through the calibration, ``gtsam.BearingFactor3D``, angular sigma
   from the model's local scale, Huber 2.45); the build time includes the
   unprojection;
-- ``python``: :class:`gtsam_sphere.external.ProjectionBlocks` (frozen pixel
+- ``python``: :class:`gtsam_sphere.estimation.external.ProjectionBlocks` (frozen pixel
   factors, one landmark and up to ``--max-obs`` images per ``CustomFactor``,
   Huber 2.45 per observation), LM through
-  :func:`gtsam_sphere.external.levenberg_marquardt`, ISAM2 with its
+  :func:`gtsam_sphere.estimation.external.levenberg_marquardt`, ISAM2 with its
   linearisation point held (both avoid the per-callback copy of the
   ``Values``, see that function);
 - ``python-gtsam``: the same factors in ``gtsam.LevenbergMarquardtOptimizer``
@@ -89,7 +89,7 @@ def _initial_and_gauge(scene, rng):
     """Perturbed start (Values) and the prior + odometry factors (NonlinearFactorGraph)."""
     import gtsam
 
-    from gtsam_sphere.graph import point_key, pose_key
+    from gtsam_sphere.estimation.graph import point_key, pose_key
     from gtsam_sphere.simulate.building import perturb_poses, rotation_exp
 
     R, t = scene.world_from_cam_R, scene.world_from_cam_t
@@ -120,8 +120,8 @@ def _factors(path: str, scene, rng, max_obs: int):
     """(list of factors, observation indices each factor covers, extra info) for a path."""
     import gtsam
 
-    from gtsam_sphere.external import ProjectionBlocks, make_bearing_factors
-    from gtsam_sphere.graph import point_key, pose_key
+    from gtsam_sphere.estimation.external import ProjectionBlocks, make_bearing_factors
+    from gtsam_sphere.estimation.graph import point_key, pose_key
 
     M = gtsam.noiseModel
     pk = np.array([pose_key(i) for i in range(scene.n_images)], np.uint64)[scene.obs_image]
@@ -184,8 +184,8 @@ def _accuracy(scene, values) -> dict:
     """Map accuracy: landmark RMS (m) after a 7-parameter similarity per room onto the
     truth (the walls hide one room from the next, so rooms are tied together by the
     odometry alone and drift with it), and the RMS rotation error of the poses (deg)."""
-    from gtsam_sphere.geometry import fit_similarity
-    from gtsam_sphere.graph import point_key, pose_key
+    from gtsam_sphere.core.geometry import fit_similarity
+    from gtsam_sphere.estimation.graph import point_key, pose_key
 
     rot = []
     for i in range(scene.n_images):
@@ -211,8 +211,8 @@ def worker(args) -> dict:
     """One run: simulate, build, optimise; returns the measurements."""
     import gtsam
 
-    from gtsam_sphere.external import levenberg_marquardt
-    from gtsam_sphere.graph import point_key
+    from gtsam_sphere.estimation.external import levenberg_marquardt
+    from gtsam_sphere.estimation.graph import point_key
 
     rng = np.random.default_rng(args.seed + 1)
     t0 = time.perf_counter()
@@ -273,7 +273,7 @@ def _isam2(path, scene, values, gauge, factors, cover):
     with its first factor. Returns (seconds, estimate, number of updates)."""
     import gtsam
 
-    from gtsam_sphere.graph import point_key, pose_key
+    from gtsam_sphere.estimation.graph import point_key, pose_key
 
     isam = gtsam.ISAM2()
     keep = isam.getLinearizationPoint() if path == "python" else None  # noqa: F841 (held)

@@ -16,10 +16,10 @@ import time
 
 import numpy as np
 
-from gtsam_sphere.calibrate import CalibrationOptions, calibrate, initialise
-from gtsam_sphere.camera import Model
-from gtsam_sphere.dataset import parse_dataset
-from gtsam_sphere.evaluate import evaluate_calibration
+from gtsam_sphere.analysis.evaluate import evaluate_calibration
+from gtsam_sphere.core.camera import Model
+from gtsam_sphere.estimation.calibrate import CalibrationOptions, calibrate, initialise
+from gtsam_sphere.io.dataset import parse_dataset
 from gtsam_sphere.simulate import gopro_like, simulate_room
 from gtsam_sphere.simulate.room import nikon_like
 

@@ -1,7 +1,7 @@
 """Hold-out accuracy on the real data of ``../shared/data``, side by side with OpenCV.
 
 A calibration is tested on images it was not estimated from: each test image is
-resected (:func:`gtsam_sphere.resect.resect`, pose only, calibration fixed,
+resected (:func:`gtsam_sphere.estimation.resect.resect`, pose only, calibration fixed,
 targets at the calibration's board coordinates) and its reprojection error in raw
 pixels is pooled as ``sqrt(mean(du^2 + dv^2))`` over all test corners
 (OpenCV's RMS, the definition of ``../shared/data/README.md``).
@@ -69,10 +69,15 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from gtsam_sphere.calibrate import CalibrationOptions, Initialisation, calibrate, initialise
-from gtsam_sphere.camera import Model
-from gtsam_sphere.dataset import load_dataset, parse_dataset
-from gtsam_sphere.resect import resect
+from gtsam_sphere.core.camera import Model
+from gtsam_sphere.estimation.calibrate import (
+    CalibrationOptions,
+    Initialisation,
+    calibrate,
+    initialise,
+)
+from gtsam_sphere.estimation.resect import resect
+from gtsam_sphere.io.dataset import load_dataset, parse_dataset
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = REPO.parent / "shared" / "data"
@@ -592,7 +597,7 @@ def _loo_row(method, all_rms, loo) -> dict:
 
 def fish_dataset(folder: str, square: float):
     """Detect the chessboard in one folder of real images (identical files dropped)."""
-    from gtsam_sphere.detect import BoardSpec, detect_images
+    from gtsam_sphere.apps.detect import BoardSpec, detect_images
 
     paths, seen, dropped = [], {}, []
     for p in sorted((DATA / "images" / folder).glob("*.jpg")):
@@ -619,7 +624,7 @@ def section_recovery(folder: str, square: float, seed: int) -> dict:
        rescued with the calibration (``rescue_partial_chessboard``), at the positions
        the full detection gave, with no corner invented.
     """
-    from gtsam_sphere.detect import (
+    from gtsam_sphere.apps.detect import (
         BoardSpec,
         _image_ids,
         detect_image,
@@ -629,7 +634,7 @@ def section_recovery(folder: str, square: float, seed: int) -> dict:
 
     board = BoardSpec.parse(FISH_BOARD.format(square=square))
     paths = [str(p) for p in sorted((DATA / "images" / folder).glob("*.jpg"))]
-    from gtsam_sphere.detect import detect_images
+    from gtsam_sphere.apps.detect import detect_images
 
     doc, _ = detect_images(paths, board, progress=False)
     _, rep = recover_dataset(doc, paths, board, model="radial", seed=seed)
@@ -783,7 +788,7 @@ def main(argv=None) -> int:
             ("OpenCV fisheye (data README)", OPENCV_LEFT_RMS),
         )
     if "omnidir" in sections:
-        from gtsam_sphere.dataset import load_rig_dataset, split_rig
+        from gtsam_sphere.io.dataset import load_rig_dataset, split_rig
 
         rig = split_rig(load_rig_dataset(DATA / "opencv_omnidir_stereo.dataset.json"))
         for cam, ds in rig.items():
@@ -795,8 +800,7 @@ def main(argv=None) -> int:
             print_loo(
                 f"e. opencv_omnidir_stereo {cam} (one camera of the rig, alone)",
                 sec,
-                (f"OpenCV omnidir (data README, {OMNI_MONO_VIEWS[cam]} views)",
-                 OMNI_MONO_RMS[cam]),
+                (f"OpenCV omnidir (data README, {OMNI_MONO_VIEWS[cam]} views)", OMNI_MONO_RMS[cam]),
             )
     if "fish" in sections:
         for folder, square in FISH.items():

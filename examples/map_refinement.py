@@ -23,8 +23,12 @@ import gtsam
 import numpy as np
 
 from gtsam_sphere import load_calibration
-from gtsam_sphere.external import ProjectionBlocks, levenberg_marquardt, make_bearing_factors
-from gtsam_sphere.graph import point_key, pose_key
+from gtsam_sphere.estimation.external import (
+    ProjectionBlocks,
+    levenberg_marquardt,
+    make_bearing_factors,
+)
+from gtsam_sphere.estimation.graph import point_key, pose_key
 from gtsam_sphere.simulate.building import perturb_poses, simulate_building
 
 

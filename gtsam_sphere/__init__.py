@@ -13,9 +13,10 @@ a standard-error handler).
 
 import logging
 
-from .calibration import Calibration, RigCalibration, load_calibration
-from .camera import Model, SphereCamera
-from .dataset import (
+from .core.camera import Model, SphereCamera
+from .core.errors import GtsamSphereError, InputError
+from .io.calibration import Calibration, RigCalibration, load_calibration
+from .io.dataset import (
     Dataset,
     DatasetError,
     RigDataset,
@@ -23,7 +24,6 @@ from .dataset import (
     load_dataset,
     load_rig_dataset,
 )
-from .errors import GtsamSphereError, InputError
 
 __all__ = [
     "Calibration",

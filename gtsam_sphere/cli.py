@@ -21,10 +21,10 @@ import sys
 import time
 from pathlib import Path
 
-from .camera import DEFAULT_MODEL, Model, parse_brown_terms
-from .errors import InputError, OptionsError
-from .graph import Loss
-from .optimize import OptimizerKind, stderr_progress
+from .core.camera import DEFAULT_MODEL, Model, parse_brown_terms
+from .core.errors import InputError, OptionsError
+from .estimation.graph import Loss
+from .estimation.optimize import OptimizerKind, stderr_progress
 
 logger = logging.getLogger(__name__)
 
@@ -98,11 +98,11 @@ def _control_sigma_arg(text: str):
 
 
 def _options_from_args(args):
-    """:class:`~gtsam_sphere.calibrate.CalibrationOptions` from the parsed arguments.
+    """:class:`~gtsam_sphere.estimation.calibrate.CalibrationOptions` from the parsed arguments.
 
-    A value the options refuse raises :class:`~gtsam_sphere.errors.OptionsError`.
+    A value the options refuse raises :class:`~gtsam_sphere.core.errors.OptionsError`.
     """
-    from .calibrate import CalibrationOptions
+    from .estimation.calibrate import CalibrationOptions
 
     brown_terms = None if args.ap is None else parse_brown_terms(args.ap)
     try:
@@ -147,9 +147,9 @@ def _print_statistics(stats: dict) -> None:
 
 
 def cmd_calibrate(args) -> int:
-    from . import rig
-    from .calibrate import calibrate
-    from .dataset import load_dataset
+    from .estimation import rig
+    from .estimation.calibrate import calibrate
+    from .io.dataset import load_dataset
 
     if rig.is_rig_dataset(args.dataset):  # dataset@2: the rig path (gtsam_sphere/rig.py)
         return rig.run_cli(args, _options_from_args(args), None if args.quiet else stderr_progress)
@@ -198,9 +198,9 @@ def _print_outliers(outliers: list[dict], limit: int = 10) -> None:
 
 
 def cmd_evaluate(args) -> int:
-    from .calibration import load_calibration
-    from .dataset import load_checkpoints
-    from .evaluate import evaluate_calibration
+    from .analysis.evaluate import evaluate_calibration
+    from .io.calibration import load_calibration
+    from .io.dataset import load_checkpoints
 
     calib = load_calibration(args.calibration)
     ids, xyz, units = load_checkpoints(args.checkpoints)
@@ -219,9 +219,9 @@ def cmd_evaluate(args) -> int:
 def cmd_demo(args) -> int:
     import numpy as np
 
-    from .calibrate import CalibrationOptions, calibrate
-    from .dataset import parse_dataset
-    from .evaluate import evaluate_calibration
+    from .analysis.evaluate import evaluate_calibration
+    from .estimation.calibrate import CalibrationOptions, calibrate
+    from .io.dataset import parse_dataset
     from .simulate import gopro_like, simulate_room, write_simulation
     from .simulate.oracle import oracle_calibration
 
@@ -264,8 +264,13 @@ def cmd_demo(args) -> int:
         if say:
             say("oracle: the same data with the true lens held fixed")
         oracle = oracle_calibration(sim, args.seed)
-        rows.append(("oracle (true lens)", oracle.statistics["rms_px"],
-                     evaluate_calibration(oracle, ids, xyz)))
+        rows.append(
+            (
+                "oracle (true lens)",
+                oracle.statistics["rms_px"],
+                evaluate_calibration(oracle, ids, xyz),
+            )
+        )
     print(f"\n  check points ({len(rep.ids)}), RMSE after a 7-parameter similarity:")
     print(f"  {'':30}{'RMS px':>8}{'X mm':>8}{'Y mm':>8}{'Z mm':>8}{'3D mm':>8}")
     for label, rms, r in rows:
@@ -315,7 +320,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("checkpoints")
     p.set_defaults(func=cmd_evaluate)
 
-    from . import compare, detect, export, report, simulate, undistort
+    from . import simulate
+    from .analysis import compare
+    from .apps import detect, export, report, undistort
 
     # subcommands whose module owns its arguments (add_cli_arguments / run_cli)
     for name, module, help_text in (

@@ -27,7 +27,7 @@ def checkpoints_of(sim):
 
 def bare_calibration(camera, uv_px=None):
     """A Calibration holding only ``camera`` (and, optionally, observed pixels (N, 2))."""
-    from gtsam_sphere.calibration import Calibration
+    from gtsam_sphere.io.calibration import Calibration
 
     extra = {}
     if uv_px is not None:

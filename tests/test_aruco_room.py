@@ -18,9 +18,9 @@ import cv2
 import numpy as np
 import pytest
 
-from gtsam_sphere.calibration import load_calibration
+from gtsam_sphere.apps.detect import BoardSpec, detect_image
 from gtsam_sphere.cli import main as cli_main
-from gtsam_sphere.detect import BoardSpec, detect_image
+from gtsam_sphere.io.calibration import load_calibration
 from gtsam_sphere.simulate.lenses import make_lens
 from gtsam_sphere.simulate.render import make_aruco_room, pixel_rays, render_aruco_room
 

@@ -14,8 +14,8 @@ import functools
 import numpy as np
 import pytest
 
-from gtsam_sphere.calibrate import CalibrationOptions, calibrate
-from gtsam_sphere.dataset import parse_dataset
+from gtsam_sphere.estimation.calibrate import CalibrationOptions, calibrate
+from gtsam_sphere.io.dataset import parse_dataset
 from gtsam_sphere.simulate.building import rotation_exp
 from gtsam_sphere.simulate.lenses import Equidistant
 
@@ -142,7 +142,7 @@ def test_bad_control_sigma_is_refused_with_its_value(bad):
 
 @pytest.mark.slow  # end-to-end
 def test_report_shows_the_board_shape(tmp_path):
-    from gtsam_sphere.report import target_shifts_of, write_report
+    from gtsam_sphere.apps.report import target_shifts_of, write_report
 
     paths = write_report(_calibrate(0.002), tmp_path / "free")
     md = paths["markdown"].read_text()

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 from helpers import checkpoints_of
 
-from gtsam_sphere.calibrate import CalibrationOptions, calibrate
-from gtsam_sphere.dataset import parse_dataset
-from gtsam_sphere.evaluate import evaluate_calibration
+from gtsam_sphere.analysis.evaluate import evaluate_calibration
+from gtsam_sphere.estimation.calibrate import CalibrationOptions, calibrate
+from gtsam_sphere.io.dataset import parse_dataset
 from gtsam_sphere.simulate import SimulationOptions, simulate_room
 
 # A room smaller than the paper's (CI has 2 cores): 30 images, 220 targets.
@@ -133,12 +133,19 @@ def test_dogleg_matches_lm():
 def test_noise_free_data_converges_and_is_trusted():
     """Perfect measurements (a renderer, a simulator): the noise estimate stops at its
     floor instead of whitening the projection's numerical noise (it stalled before)."""
-    from gtsam_sphere.calibrate import MIN_SIGMA_PX
+    from gtsam_sphere.estimation.calibrate import MIN_SIGMA_PX
 
     sim = simulate_room(
         SimulationOptions(
-            lens="equidistant", fov_deg=180.0, noise_px=0.0, seed=2, n_images=12,
-            n_targets=150, n_checkpoints=20, width=1600, height=1200,
+            lens="equidistant",
+            fov_deg=180.0,
+            noise_px=0.0,
+            seed=2,
+            n_images=12,
+            n_targets=150,
+            n_checkpoints=20,
+            width=1600,
+            height=1200,
         )
     )
     calib = calibrate(parse_dataset(sim.dataset), CalibrationOptions(model="radial"))

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from gtsam_sphere.camera import BROWN_TERMS, SphereCamera, radial_g, sphere_residual
-from gtsam_sphere.export import pixel_hemisphere
+from gtsam_sphere.apps.export import pixel_hemisphere
+from gtsam_sphere.core.camera import BROWN_TERMS, SphereCamera, radial_g, sphere_residual
 
 
 def _directions(rng, n, max_alpha_deg):
@@ -126,7 +126,7 @@ def test_brown_past_180_pixel_ray_pixel_round_trip(correction):
     cam = brown_210(correction=correction)
     uv = _observed_pixels(cam)
     hemisphere = cam.pixel_hemisphere(uv)
-    # the export's finite-difference rule (gtsam_sphere.export.pixel_hemisphere) agrees
+    # the export's finite-difference rule (gtsam_sphere.apps.export.pixel_hemisphere) agrees
     assert np.mean(pixel_hemisphere(cam, uv) == hemisphere) > 0.999
     rays = cam.unproject(uv, hemisphere=hemisphere)
     has_ray = np.all(np.isfinite(rays), axis=1)

@@ -125,7 +125,7 @@ def test_real_data_calibrates_with_every_corner(name, tmp_path):
 @pytest.mark.slow  # end-to-end
 def test_ctrl_c_leaves_the_previous_file_and_says_so(small_room, tmp_path, capsys, monkeypatch):
     """Issue 6: an interrupted run writes nothing and names the last good state."""
-    import gtsam_sphere.calibrate as calibrate_module
+    import gtsam_sphere.estimation.calibrate as calibrate_module
 
     _, paths = small_room
     out = tmp_path / "c.json"
@@ -149,8 +149,16 @@ def test_closed_stdout_ends_quietly(tmp_path):
     import sys
 
     proc = subprocess.Popen(
-        [sys.executable, "-m", "gtsam_sphere", "simulate", "--preset", "gopro", "-o",
-         str(tmp_path / "sim")],
+        [
+            sys.executable,
+            "-m",
+            "gtsam_sphere",
+            "simulate",
+            "--preset",
+            "gopro",
+            "-o",
+            str(tmp_path / "sim"),
+        ],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
     )

@@ -6,9 +6,13 @@ from sklearn.base import clone
 from sklearn.exceptions import NotFittedError
 from sklearn.utils.estimator_checks import parametrize_with_checks
 
-from gtsam_sphere.calibration import camera_from_dict
-from gtsam_sphere.camera import SphereCamera
-from gtsam_sphere.correct import KNNCorrection, consistent_with_neighbours, correction_from_dict
+from gtsam_sphere.core.camera import SphereCamera
+from gtsam_sphere.estimation.correct import (
+    KNNCorrection,
+    consistent_with_neighbours,
+    correction_from_dict,
+)
+from gtsam_sphere.io.calibration import camera_from_dict
 
 
 def _field(uv):
@@ -107,7 +111,7 @@ def test_blunders_are_left_out_of_training_but_not_the_border():
 
 def test_robust_sigma_of_2d_residual_norms():
     """One robust scale for calibrate, resect and the kNN training set."""
-    from gtsam_sphere.graph import robust_sigma_px
+    from gtsam_sphere.estimation.graph import robust_sigma_px
 
     rng = np.random.default_rng(4)
     r = np.linalg.norm(rng.normal(0.0, 0.3, (100_000, 2)), axis=1)

@@ -7,7 +7,7 @@ import os
 import numpy as np
 import pytest
 
-from gtsam_sphere.dataset import (
+from gtsam_sphere.io.dataset import (
     DatasetError,
     load_checkpoints,
     load_dataset,

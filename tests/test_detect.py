@@ -1,4 +1,4 @@
-"""Tests of gtsam_sphere.detect: board parsing, rendered-board accuracy, real fisheye images."""
+"""Tests of apps.detect: board parsing, rendered-board accuracy, real fisheye images."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
-from gtsam_sphere.detect import (
+from gtsam_sphere.apps.detect import (
     BoardSpec,
     add_cli_arguments,
     detect_image,
@@ -210,7 +210,7 @@ FULL_VIEWS = {
 
 def fisheye_camera(scale_c=1.0):
     """The test lens as a calibrated SphereCamera (equidistant: radial mapping, no terms)."""
-    from gtsam_sphere.camera import SphereCamera
+    from gtsam_sphere.core.camera import SphereCamera
 
     return SphereCamera(
         width=W, height=H, xp=FISHEYE.cx, yp=FISHEYE.cy, c=FISHEYE.f * scale_c, radial={}
@@ -219,7 +219,7 @@ def fisheye_camera(scale_c=1.0):
 
 @pytest.mark.parametrize("scale_c", [1.0, 1.01])
 def test_predict_and_refine_recovers_dropped_corners(scale_c):
-    from gtsam_sphere.detect import predict_and_refine
+    from gtsam_sphere.apps.detect import predict_and_refine
 
     board = BoardSpec.parse(BOARD_6X8)
     R, t = FULL_VIEWS["b"]
@@ -239,7 +239,7 @@ def test_predict_and_refine_recovers_dropped_corners(scale_c):
 
 
 def test_predict_and_refine_rejects_corners_off_the_board():
-    from gtsam_sphere.detect import predict_and_refine
+    from gtsam_sphere.apps.detect import predict_and_refine
 
     # a 6x8 board described as 7x8: the 8 corners of the extra column fall on the white
     # margin (no saddle) and must not be invented
@@ -253,7 +253,7 @@ def test_predict_and_refine_rejects_corners_off_the_board():
 
 
 def test_rescue_partial_chessboard():
-    from gtsam_sphere.detect import rescue_partial_chessboard
+    from gtsam_sphere.apps.detect import rescue_partial_chessboard
 
     board = BoardSpec.parse(BOARD_6X8)
     img, truth = render_board_image(
@@ -300,7 +300,7 @@ def test_detect_cli_recover(tmp_path, capsys):
     assert len(images["corner"]) == 48 and all(o["recovered"] for o in images["corner"])
     assert not any(o.get("recovered") for o in images["a"])
     assert doc["source"]["recovery"]["added"] == 48
-    from gtsam_sphere.dataset import load_dataset
+    from gtsam_sphere.io.dataset import load_dataset
 
     assert load_dataset(out).n_observations == 5 * 48
 
@@ -395,7 +395,7 @@ def test_real_fisheye_images(folder, square):
     assert len(rep.used) >= len(images) - 1
     assert all(n == 48 for _, n in rep.used)
     # Every detected corner is a real saddle and the grid is regular (no sub-grid slips).
-    from gtsam_sphere.detect import saddle_score
+    from gtsam_sphere.apps.detect import saddle_score
 
     by_id = {p.stem: p for p in images}
     for img_entry in ds["images"]:
@@ -408,7 +408,7 @@ def test_real_fisheye_images(folder, square):
 def test_real_fisheye_every_corner_is_a_saddle():
     # On these two images findChessboardCornersSB puts 2 corners each 3-4 px off (not at
     # a saddle, where the saddle fit fails); the detector searches them again.
-    from gtsam_sphere.detect import saddle_score
+    from gtsam_sphere.apps.detect import saddle_score
 
     names = ["Fisheye2_5.jpg", "Fisheye2_13.jpg"]
     paths = [DATA / "images" / "fish_2" / n for n in names]
@@ -428,21 +428,25 @@ def test_real_fisheye_every_corner_is_a_saddle():
 @pytest.mark.slow  # end-to-end
 def test_rendered_images_to_calibration_recover_the_lens(tmp_path):
     """Issue 4: render -> detect (with recovery) -> calibrate recovers the simulated lens."""
-    from gtsam_sphere.calibrate import CalibrationOptions, calibrate
-    from gtsam_sphere.dataset import load_dataset
+    from gtsam_sphere.estimation.calibrate import CalibrationOptions, calibrate
+    from gtsam_sphere.io.dataset import load_dataset
 
     paths = _render_views(tmp_path)
     parser = argparse.ArgumentParser()
     add_cli_arguments(parser)
     out = tmp_path / "ds.json"
-    args = parser.parse_args([*paths, "--board", BOARD_6X8, "-o", str(out), "--no-progress",
-                              "--recover"])
+    args = parser.parse_args(
+        [*paths, "--board", BOARD_6X8, "-o", str(out), "--no-progress", "--recover"]
+    )
     assert run_cli(args) == 0
     # the lens is equidistant: the radial mapping with no terms is exact
     options = CalibrationOptions(model="radial", radial_terms=0, brown_terms=(), covariance=True)
     calib = calibrate(load_dataset(out), options)
     cam, sig = calib.camera, calib.statistics["intrinsics_sigma"]
-    for est, true, s in ((cam.xp, FISHEYE.cx, sig["xp_px"]), (cam.yp, FISHEYE.cy, sig["yp_px"]),
-                         (cam.c, FISHEYE.f, sig["c_px"])):
+    for est, true, s in (
+        (cam.xp, FISHEYE.cx, sig["xp_px"]),
+        (cam.yp, FISHEYE.cy, sig["yp_px"]),
+        (cam.c, FISHEYE.f, sig["c_px"]),
+    ):
         assert abs(est - true) < max(4 * s, 0.1), (est, true, s)
     assert calib.statistics["rms_px"] < 0.1

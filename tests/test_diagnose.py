@@ -1,4 +1,4 @@
-"""Degeneracy checks (gtsam_sphere.diagnose): each failure is named, a healthy room is not."""
+"""Degeneracy checks (estimation.diagnose): each failure is named, a healthy room is not."""
 
 from __future__ import annotations
 
@@ -9,9 +9,8 @@ import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
-from gtsam_sphere.camera import SphereCamera
-from gtsam_sphere.dataset import DatasetError, parse_dataset
-from gtsam_sphere.diagnose import (
+from gtsam_sphere.core.camera import SphereCamera
+from gtsam_sphere.estimation.diagnose import (
     DegenerateGeometryError,
     Problem,
     ProblemCode,
@@ -19,6 +18,7 @@ from gtsam_sphere.diagnose import (
     image_groups,
     raise_if_degenerate,
 )
+from gtsam_sphere.io.dataset import DatasetError, parse_dataset
 from gtsam_sphere.simulate import SimulationOptions, simulate_room
 
 SMALL_ROOM = dict(
@@ -58,7 +58,7 @@ def room():
 
 @pytest.mark.slow  # end-to-end
 def test_healthy_room_has_no_fatal_problem_before_or_after_initialisation(room):
-    from gtsam_sphere.calibrate import initialise
+    from gtsam_sphere.estimation.calibrate import initialise
 
     sim, ds = room
     assert _codes(check_geometry(ds), fatal=True) == set()

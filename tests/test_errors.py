@@ -1,4 +1,4 @@
-"""The exception hierarchy (gtsam_sphere.errors) and the one exit-code table of the CLI."""
+"""The exception hierarchy (gtsam_sphere.core.errors) and the one exit-code table of the CLI."""
 
 import argparse
 import json
@@ -6,8 +6,7 @@ import json
 import pytest
 
 import gtsam_sphere.cli as cli
-from gtsam_sphere import dataset, diagnose
-from gtsam_sphere.errors import (
+from gtsam_sphere.core.errors import (
     DatasetError,
     DegenerateGeometryError,
     GtsamSphereError,
@@ -15,6 +14,8 @@ from gtsam_sphere.errors import (
     InputError,
     OptionsError,
 )
+from gtsam_sphere.estimation import diagnose
+from gtsam_sphere.io import dataset
 from gtsam_sphere.simulate import SimulationOptions, simulate_room, write_simulation
 
 
@@ -152,7 +153,8 @@ def test_calibrate_degenerate_geometry_exits_2(tiny_dataset, tmp_path, capsys):
 
 
 def test_detect_and_simulate_refuse_options_but_not_bugs(monkeypatch, tmp_path):
-    from gtsam_sphere import detect, simulate
+    from gtsam_sphere import simulate
+    from gtsam_sphere.apps import detect
 
     parser = argparse.ArgumentParser()
     detect.add_cli_arguments(parser)

@@ -1,4 +1,4 @@
-"""Exports to OpenCV / Kalibr models (gtsam_sphere.export): fits, cv2 agreement, files, CLI."""
+"""Exports to OpenCV / Kalibr models (gtsam_sphere.apps.export): fits, cv2 agreement, files, CLI."""
 
 from __future__ import annotations
 
@@ -10,9 +10,7 @@ import pytest
 from helpers import bare_calibration
 
 from gtsam_sphere import SphereCamera, load_calibration
-from gtsam_sphere.cli import main
-from gtsam_sphere.dataset import DatasetError
-from gtsam_sphere.export import (
+from gtsam_sphere.apps.export import (
     TARGETS,
     ds_project,
     export_calibration,
@@ -26,6 +24,8 @@ from gtsam_sphere.export import (
     sample_region,
     write_export,
 )
+from gtsam_sphere.cli import main
+from gtsam_sphere.io.dataset import DatasetError
 
 W, H, C = 1200, 900, 400.0
 
@@ -199,7 +199,6 @@ def test_project_rays_handles_the_back_half_past_a_fold(cam):
     uv = project_rays(cam, rays[back])
     assert np.nanmax(np.linalg.norm(uv - obs[back], axis=1)) < 1e-6
     assert np.all(np.isfinite(uv))
-
 
 
 def test_cli_writes_every_target_and_prints_the_residual(cam, obs75, tmp_path, capsys):

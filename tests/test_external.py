@@ -12,9 +12,8 @@ import numpy as np
 import pytest
 from gtsam.utils.numerical_derivative import numericalDerivative21, numericalDerivative22
 
-from gtsam_sphere.calibration import Calibration
-from gtsam_sphere.camera import SphereCamera
-from gtsam_sphere.external import (
+from gtsam_sphere.core.camera import SphereCamera
+from gtsam_sphere.estimation.external import (
     ProjectionBlocks,
     bearing_sigma_rad,
     bearing_sqrt_information,
@@ -25,7 +24,8 @@ from gtsam_sphere.external import (
     make_projection_factor,
     model_scale_px_per_rad,
 )
-from gtsam_sphere.graph import point_key, pose_key
+from gtsam_sphere.estimation.graph import point_key, pose_key
+from gtsam_sphere.io.calibration import Calibration
 from gtsam_sphere.simulate.building import fisheye_camera, perturb_poses, simulate_building
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 from gtsam.utils.numerical_derivative import numericalDerivative11
 
-from gtsam_sphere.camera import BROWN_TERMS, RADIAL_TERMS
-from gtsam_sphere.graph import (
+from gtsam_sphere.core.camera import BROWN_TERMS, RADIAL_TERMS
+from gtsam_sphere.estimation.graph import (
     IMAGES_PER_FACTOR,
     INTRINSICS_KEY,
     BundleProblem,

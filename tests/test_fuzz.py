@@ -31,10 +31,10 @@ import pytest
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
-from gtsam_sphere.calibration import Calibration
-from gtsam_sphere.camera import SphereCamera
 from gtsam_sphere.cli import main
-from gtsam_sphere.dataset import (
+from gtsam_sphere.core.camera import SphereCamera
+from gtsam_sphere.io.calibration import Calibration
+from gtsam_sphere.io.dataset import (
     MAX_ABS_COORDINATE,
     DatasetError,
     load_checkpoints,

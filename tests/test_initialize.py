@@ -1,11 +1,11 @@
-"""Tests of gtsam_sphere.initialize on a tiny local "inside-out room" simulator."""
+"""Tests of gtsam_sphere.estimation.initialize on a tiny local "inside-out room" simulator."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from gtsam_sphere.initialize import (
+from gtsam_sphere.estimation.initialize import (
     InitialisationError,
     InitialisationResult,
     bearings_from_pixels,
@@ -287,21 +287,48 @@ def _radius_error(res: InitialisationResult, lens, uv_px: np.ndarray) -> float:
 # (lens, image size): image circles from 0.25x the short side to 1.3x the half diagonal,
 # principal points off the centre, five families and two lenses between them
 _CIRCLE_CASES = {
-    "equisolid250-circle0.25": (Equisolid, dict(f=0.25 * 2000 / 1.7740, max_angle_deg=125.0),
-                                2000, 2000, (0.0, 0.0)),
-    "stereo200-circle0.45-offset": (Stereographic, dict(f=0.45 * 1600 / 2.3835,
-                                                        max_angle_deg=100.0),
-                                    1600, 1600, (0.06, -0.05)),
-    "unified220-circle0.33": (Unified, dict(f=0.33 * 2400 / np.tan(np.radians(55)),
-                                            xi=1.0, max_angle_deg=110.0),
-                              2400, 2400, (0.0, 0.03)),
-    "kb190-circle0.5": (KannalaBrandt, dict(f=700 / 1.58, k1=-0.02, k2=0.003,
-                                            max_angle_deg=95.0), 1600, 1400, (0.0, 0.0)),
-    "equidistant180-fullframe1.3": (Equidistant, dict(f=1.3 * 1000.0 / (np.pi / 2),
-                                                      max_angle_deg=90.0),
-                                    1600, 1200, (0.08, 0.0)),
-    "pinhole-brown-offset": (PinholeBrown, dict(f=900.0, k1=-0.05, max_angle_deg=60.0),
-                             1600, 1200, (-0.1, 0.1)),
+    "equisolid250-circle0.25": (
+        Equisolid,
+        dict(f=0.25 * 2000 / 1.7740, max_angle_deg=125.0),
+        2000,
+        2000,
+        (0.0, 0.0),
+    ),
+    "stereo200-circle0.45-offset": (
+        Stereographic,
+        dict(f=0.45 * 1600 / 2.3835, max_angle_deg=100.0),
+        1600,
+        1600,
+        (0.06, -0.05),
+    ),
+    "unified220-circle0.33": (
+        Unified,
+        dict(f=0.33 * 2400 / np.tan(np.radians(55)), xi=1.0, max_angle_deg=110.0),
+        2400,
+        2400,
+        (0.0, 0.03),
+    ),
+    "kb190-circle0.5": (
+        KannalaBrandt,
+        dict(f=700 / 1.58, k1=-0.02, k2=0.003, max_angle_deg=95.0),
+        1600,
+        1400,
+        (0.0, 0.0),
+    ),
+    "equidistant180-fullframe1.3": (
+        Equidistant,
+        dict(f=1.3 * 1000.0 / (np.pi / 2), max_angle_deg=90.0),
+        1600,
+        1200,
+        (0.08, 0.0),
+    ),
+    "pinhole-brown-offset": (
+        PinholeBrown,
+        dict(f=900.0, k1=-0.05, max_angle_deg=60.0),
+        1600,
+        1200,
+        (-0.1, 0.1),
+    ),
 }
 
 
@@ -313,8 +340,7 @@ def test_focal_scale_and_principal_point_from_the_pixels(case):
     lens = cls(cx=cx, cy=cy, **params)
     data = simulate(3, "", 0.0, 0.0, width, height, 12, 900, lens=lens)
     messages: list[str] = []
-    res = initialize_poses(**_inputs(data), rng=np.random.default_rng(0),
-                           progress=messages.append)
+    res = initialize_poses(**_inputs(data), rng=np.random.default_rng(0), progress=messages.append)
     short = min(width, height)
     # the radius of the initial lens is right to 3 % of the observed radius ...
     r_obs = np.percentile(np.hypot(*(data["uv_px"] - [cx, cy]).T), 99)
@@ -344,8 +370,20 @@ def test_small_circle_is_found_as_a_disc():
 def test_3d_object_picks_the_right_focal_scale():
     """A cube corner of three tag grids seen by a 1280x800 fisheye (real case of issue 12)."""
     lens = KannalaBrandt(f=330.0, cx=640.0, cy=400.0, k1=-0.01, k2=0.002, max_angle_deg=98.0)
-    data = simulate(5, "", 0.0, 0.0, 1280, 800, 15, 300, lens=lens, scene="object",
-                    target_noise_m=0.0, blunder_fraction=0.0)
+    data = simulate(
+        5,
+        "",
+        0.0,
+        0.0,
+        1280,
+        800,
+        15,
+        300,
+        lens=lens,
+        scene="object",
+        target_noise_m=0.0,
+        blunder_fraction=0.0,
+    )
     res = initialize_poses(**_inputs(data), rng=np.random.default_rng(0))
     assert abs(res.lens.f_px / 330.0 - 1) < 0.05, res.lens.describe()
     good = np.flatnonzero(res.ok)

@@ -45,8 +45,15 @@ def test_the_zoo_has_every_family_scene_and_circle():
     cases = list(CASES.values())
     assert len(cases) >= 60
     assert {c.family for c in cases} >= {
-        "pinhole", "equidistant", "equisolid", "stereographic", "sphere",
-        "kannala-brandt", "unified", "double-sphere", "fov",
+        "pinhole",
+        "equidistant",
+        "equisolid",
+        "stereographic",
+        "sphere",
+        "kannala-brandt",
+        "unified",
+        "double-sphere",
+        "fov",
     }
     assert {c.scene for c in cases} == {"room", "board", "object3d"}
     radii = [c.radius_over_short for c in cases]

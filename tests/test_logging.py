@@ -6,9 +6,9 @@ import logging
 import pytest
 from helpers import bare_calibration
 
-from gtsam_sphere.camera import SphereCamera
 from gtsam_sphere.cli import main
-from gtsam_sphere.diagnose import Problem, ProblemCode, raise_if_degenerate
+from gtsam_sphere.core.camera import SphereCamera
+from gtsam_sphere.estimation.diagnose import Problem, ProblemCode, raise_if_degenerate
 from gtsam_sphere.simulate import SimulationOptions, simulate_room, write_simulation
 
 
@@ -64,5 +64,5 @@ def test_geometry_warnings_go_to_the_logger_without_a_callback(caplog):
     with caplog.at_level(logging.WARNING, logger="gtsam_sphere"):
         assert raise_if_degenerate([weak]) == [weak]
     assert [(r.name, r.levelno, r.getMessage()) for r in caplog.records] == [
-        ("gtsam_sphere.diagnose", logging.WARNING, "[few-points] few -> more")
+        ("gtsam_sphere.estimation.diagnose", logging.WARNING, "[few-points] few -> more")
     ]

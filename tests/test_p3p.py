@@ -1,11 +1,11 @@
-"""Tests of gtsam_sphere.p3p: the minimal solver and RANSAC, for bearings in any direction."""
+"""Tests of gtsam_sphere.core.p3p: the minimal solver and RANSAC, for bearings in any direction."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from gtsam_sphere.p3p import PoseResult, angular_errors_rad, p3p, ransac_pose
+from gtsam_sphere.core.p3p import PoseResult, angular_errors_rad, p3p, ransac_pose
 
 
 def _random_rotation(rng: np.random.Generator) -> np.ndarray:

@@ -1,4 +1,4 @@
-"""Tests of the calibration report (gtsam_sphere.report)."""
+"""Tests of the calibration report (gtsam_sphere.apps.report)."""
 
 from __future__ import annotations
 
@@ -8,9 +8,7 @@ import matplotlib.image as mpimg
 import numpy as np
 import pytest
 
-from gtsam_sphere.calibration import Calibration
-from gtsam_sphere.camera import SphereCamera
-from gtsam_sphere.report import (
+from gtsam_sphere.apps.report import (
     PLOTS,
     add_cli_arguments,
     binned_mean_field,
@@ -23,6 +21,8 @@ from gtsam_sphere.report import (
     run_cli,
     write_report,
 )
+from gtsam_sphere.core.camera import SphereCamera
+from gtsam_sphere.io.calibration import Calibration
 
 W, H = 1200, 900
 

@@ -1,12 +1,12 @@
-"""Tests of gtsam_sphere.resect: one image's pose with the calibration held fixed."""
+"""Tests of gtsam_sphere.estimation.resect: one image's pose with the calibration held fixed."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from gtsam_sphere.camera import SphereCamera
-from gtsam_sphere.resect import resect
+from gtsam_sphere.core.camera import SphereCamera
+from gtsam_sphere.estimation.resect import resect
 
 
 def rot(rx, ry, rz):

@@ -11,18 +11,10 @@ import pytest
 from helpers import shared_data_file
 
 from gtsam_sphere import load_calibration
-from gtsam_sphere.calibrate import CalibrationOptions
-from gtsam_sphere.calibration import RigCalibration
-from gtsam_sphere.camera import Model, SphereCamera
 from gtsam_sphere.cli import main
-from gtsam_sphere.dataset import (
-    DatasetError,
-    dataset_version,
-    parse_dataset,
-    parse_rig_dataset,
-    split_rig,
-)
-from gtsam_sphere.rig import (
+from gtsam_sphere.core.camera import Model, SphereCamera
+from gtsam_sphere.estimation.calibrate import CalibrationOptions
+from gtsam_sphere.estimation.rig import (
     RIG_ADJUSTMENT,
     calibrate_rig,
     camera_options,
@@ -32,6 +24,14 @@ from gtsam_sphere.rig import (
     place_cameras,
     robust_pose_mean,
     rotation_angle,
+)
+from gtsam_sphere.io.calibration import RigCalibration
+from gtsam_sphere.io.dataset import (
+    DatasetError,
+    dataset_version,
+    parse_dataset,
+    parse_rig_dataset,
+    split_rig,
 )
 from gtsam_sphere.simulate import SimulationOptions, make_lens, simulate_room
 

@@ -246,7 +246,7 @@ def _observed_geometry(sim):
 
 @pytest.mark.parametrize("scene", ["board", "object3d"])
 def test_scenes_deterministic_valid_and_exact(scene):
-    from gtsam_sphere.dataset import parse_dataset
+    from gtsam_sphere.io.dataset import parse_dataset
 
     opts = SimulationOptions(scene=scene, lens="equidistant", fov_deg=190, **OBJECTS)
     a, b = simulate_room(opts), simulate_room(opts)

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gtsam_sphere.calibrate import CalibrationOptions, calibrate
-from gtsam_sphere.dataset import parse_dataset
-from gtsam_sphere.geometry import fit_similarity
+from gtsam_sphere.core.geometry import fit_similarity
+from gtsam_sphere.estimation.calibrate import CalibrationOptions, calibrate
+from gtsam_sphere.io.dataset import parse_dataset
 from gtsam_sphere.simulate import SimulationOptions, simulate_room
 
 

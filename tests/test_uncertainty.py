@@ -1,4 +1,4 @@
-"""Projection uncertainty maps (gtsam_sphere.uncertainty) and their report figure."""
+"""Projection uncertainty maps (gtsam_sphere.analysis.uncertainty) and their report figure."""
 
 from __future__ import annotations
 
@@ -10,12 +10,7 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from gtsam_sphere import SphereCamera
-from gtsam_sphere.calibration import Calibration
-from gtsam_sphere.correct import KNNCorrection
-from gtsam_sphere.dataset import DatasetError
-from gtsam_sphere.export import pixel_rays
-from gtsam_sphere.report import PLOTS, write_report
-from gtsam_sphere.uncertainty import (
+from gtsam_sphere.analysis.uncertainty import (
     cell_weights,
     compensate_jacobian,
     intrinsic_value,
@@ -26,6 +21,11 @@ from gtsam_sphere.uncertainty import (
     uncertainty_map_of,
     with_intrinsic,
 )
+from gtsam_sphere.apps.export import pixel_rays
+from gtsam_sphere.apps.report import PLOTS, write_report
+from gtsam_sphere.estimation.correct import KNNCorrection
+from gtsam_sphere.io.calibration import Calibration
+from gtsam_sphere.io.dataset import DatasetError
 
 W, H = 800, 600
 NAMES = ["xp_px", "yp_px", "c_px", "k1", "k2", "p1"]

@@ -1,4 +1,4 @@
-"""Remap tables to perspective / equirectangular / cylindrical images (gtsam_sphere.undistort)."""
+"""Remap tables to perspective / equirectangular / cylindrical images (apps.undistort)."""
 
 from __future__ import annotations
 
@@ -8,9 +8,8 @@ import pytest
 from helpers import bare_calibration
 
 from gtsam_sphere import SphereCamera
-from gtsam_sphere.cli import main
-from gtsam_sphere.export import incidence_deg, pixel_rays
-from gtsam_sphere.undistort import (
+from gtsam_sphere.apps.export import incidence_deg, pixel_rays
+from gtsam_sphere.apps.undistort import (
     INVALID,
     KINDS,
     apply_remap,
@@ -18,6 +17,7 @@ from gtsam_sphere.undistort import (
     output_rays,
     remap_tables,
 )
+from gtsam_sphere.cli import main
 
 W, H, C = 400, 300, 130.0
 
@@ -102,7 +102,6 @@ def test_interpolated_tables_match_the_exact_ones(cam):
     d = np.hypot(exact.map_x - fast.map_x, exact.map_y - fast.map_y)[both]
     assert d.max() < 0.05
     assert fast.interpolation_error_px <= d.max() + 1e-6
-
 
 
 def test_cli(cam, tmp_path, capsys):

@@ -3,10 +3,10 @@
 import cv2
 import numpy as np
 
-from gtsam_sphere.camera import SphereCamera
-from gtsam_sphere.export import export_camera
-from gtsam_sphere.uncertainty import uncertainty_map
-from gtsam_sphere.undistort import apply_remap, remap_tables
+from gtsam_sphere.analysis.uncertainty import uncertainty_map
+from gtsam_sphere.apps.export import export_camera
+from gtsam_sphere.apps.undistort import apply_remap, remap_tables
+from gtsam_sphere.core.camera import SphereCamera
 
 
 def _equidistant():
@@ -18,8 +18,13 @@ def test_equidistant_exports_to_opencv_fisheye_exactly_and_cv2_agrees():
     cam = _equidistant()
     res = export_camera(cam, "opencv-fisheye", n_samples=4000)
     assert res.rms_px < 1e-3 and res.coverage > 0.99
-    K = np.array([[res.params["fx"], 0, res.params["cx"]], [0, res.params["fy"], res.params["cy"]],
-                  [0, 0, 1.0]])
+    K = np.array(
+        [
+            [res.params["fx"], 0, res.params["cx"]],
+            [0, res.params["fy"], res.params["cy"]],
+            [0, 0, 1.0],
+        ]
+    )
     D = np.array([res.params[k] for k in ("k1", "k2", "k3", "k4")])
     rng = np.random.default_rng(0)
     rays = rng.normal(size=(500, 3))
@@ -60,7 +65,8 @@ def test_uncertainty_map_is_zero_without_covariance_and_grows_with_it():
     assert np.nanmax(zero.sigma_px) == 0.0
     small = uncertainty_map(cam, np.diag([0.01, 0.01, 0.01]), names, n_cols=12)
     large = uncertainty_map(cam, np.diag([1.0, 1.0, 1.0]), names, n_cols=12)
-    np.testing.assert_allclose(np.nanmedian(large.sigma_px), 10 * np.nanmedian(small.sigma_px),
-                               rtol=1e-6)
+    np.testing.assert_allclose(
+        np.nanmedian(large.sigma_px), 10 * np.nanmedian(small.sigma_px), rtol=1e-6
+    )
     # the principal point's sigma alone moves every pixel by sqrt(0.01 + 0.01)
     assert np.nanmin(small.sigma_px) >= np.sqrt(0.02) - 1e-9

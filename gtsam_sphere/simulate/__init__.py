@@ -208,7 +208,7 @@ def run_cli(args: argparse.Namespace) -> int:
     """
     import sys
 
-    from ..errors import InputError
+    from ..core.errors import InputError
 
     try:
         options = options_from_args(args)

@@ -7,7 +7,7 @@ Neighbouring rooms share a wall with a door (``door_size_m`` wide and high,
 centred across the corridor). Point landmarks lie on the floor, the ceiling
 and the walls of every room (uniform over the area, no landmark in a door).
 
-The camera (a :class:`~gtsam_sphere.camera.SphereCamera`, by default a
+The camera (a :class:`~gtsam_sphere.core.camera.SphereCamera`, by default a
 ~190 degree radial-mapping fisheye from :func:`fisheye_camera`) moves along a
 smooth path through every door, ``images_per_room`` images per room, looking
 forward with a slow heading, pitch and roll wobble. Camera frame as in
@@ -34,7 +34,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..camera import SphereCamera
+from ..core.camera import SphereCamera
 
 __all__ = [
     "BuildingOptions",
@@ -59,7 +59,7 @@ def fisheye_camera(
     size_px : int
         Square image side (px); principal point at the image centre.
     g3 : float
-        Cubic term of :func:`~gtsam_sphere.camera.radial_g` (dimensionless,
+        Cubic term of :func:`~gtsam_sphere.core.camera.radial_g` (dimensionless,
         ``0`` is equidistant).
     fill : float
         Image-circle radius as a fraction of the image side.
@@ -69,7 +69,7 @@ def fisheye_camera(
     SphereCamera
         ``mapping == "radial"``, ``radial = {"g3": g3}``.
     """
-    from ..camera import radial_g
+    from ..core.camera import radial_g
 
     half = math.radians(0.5 * fov_deg)
     g_half = float(radial_g(np.array([half]), np.array([g3]))[0])

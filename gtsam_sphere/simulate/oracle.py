@@ -11,10 +11,10 @@ from dataclasses import replace
 
 import numpy as np
 
-from ..calibrate import CalibrationOptions, calibrate
-from ..calibration import Calibration
-from ..camera import Model
-from ..dataset import Dataset, parse_dataset
+from ..core.camera import Model
+from ..estimation.calibrate import CalibrationOptions, calibrate
+from ..io.calibration import Calibration
+from ..io.dataset import Dataset, parse_dataset
 
 
 def _base_kind(desc: dict) -> str:
@@ -97,7 +97,7 @@ def oracle_calibration(
     -------
     Calibration
         Its ``camera`` is the ideal model, not the true lens; use it for the
-        adjusted network (:func:`gtsam_sphere.evaluate.evaluate_calibration`).
+        adjusted network (:func:`gtsam_sphere.analysis.evaluate.evaluate_calibration`).
     """
     dataset = parse_dataset(sim.dataset)
     ideal, model, fixed = oracle_dataset(dataset, sim.lens, sim.truth["lens"])

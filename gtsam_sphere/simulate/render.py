@@ -13,7 +13,7 @@ world frame is the board's), and an :class:`ArucoRoom`, a box room whose floor,
 ceiling and walls carry ArUco markers (black code square with a white quiet zone) at
 known 3-D positions and in-plane orientations. :func:`render_aruco_room` returns the image and the
 true pixel of every visible marker corner and centre, keyed like
-:func:`gtsam_sphere.detect.detect_image` (``"M{id}"`` centre, ``"M{id}_{k}"``
+:func:`gtsam_sphere.apps.detect.detect_image` (``"M{id}"`` centre, ``"M{id}_{k}"``
 corner ``k`` in OpenCV's order).
 
 Conventions (``spec/dataset.md``): pixels ``(u, v)`` with ``(0, 0)`` the centre of
@@ -42,7 +42,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from ..detect import BoardSpec
+from ..apps.detect import BoardSpec
 
 __all__ = [
     "ArucoMarker",

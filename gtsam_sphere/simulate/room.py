@@ -42,7 +42,7 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import OptionsError
+from ..core.errors import OptionsError
 from .lenses import ErrorField, NonCentral, make_lens
 from .scenes import (
     AimedPoses,
@@ -702,7 +702,7 @@ def _jsonable(value: Any) -> Any:
 
 
 def _write_json_atomic(path: Path, document: dict[str, Any]) -> None:
-    from ..dataset import write_json_atomic
+    from ..io.dataset import write_json_atomic
 
     write_json_atomic(path, document)
 

@@ -1,7 +1,7 @@
 """A calibration report: PNG plots, a Markdown page and an HTML page.
 
 :func:`write_report` reads a ``gtsam-sphere/calibration@1`` file (or takes a
-:class:`~gtsam_sphere.calibration.Calibration`) and writes into ``out_dir``:
+:class:`~gtsam_sphere.io.calibration.Calibration`) and writes into ``out_dir``:
 
 ``residuals_2d.png``
     Scatter of the image residuals (x, y), outliers in another colour
@@ -24,7 +24,7 @@
     covariance of the intrinsics, after the camera rotation that best
     re-aligns the image over the observations (the part of the intrinsics'
     error the poses absorb is not counted), plus the local term of a learned
-    kNN correction (:mod:`gtsam_sphere.uncertainty`).
+    kNN correction (:mod:`gtsam_sphere.analysis.uncertainty`).
 ``report.md`` and ``index.html``
     The same tables and images as a Markdown page and an HTML page.
 
@@ -45,7 +45,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .calibration import Calibration, load_calibration
+from ..io.calibration import Calibration, load_calibration
 
 #: The plot files of a report, in page order, with their captions.
 PLOTS: dict[str, str] = {
@@ -832,7 +832,7 @@ def plot_residual_field(
 def uncertainty_of(calib: Calibration):
     """The projection uncertainty map of ``calib`` and a note, or ``(None, why)``.
 
-    The map is :func:`~gtsam_sphere.uncertainty.uncertainty_map_of`'s
+    The map is :func:`~gtsam_sphere.analysis.uncertainty.uncertainty_map_of`'s
     default: points at infinity, the camera rotation compensated over the
     calibration's observations (its ``sigma_fixed_ray_px`` holds the
     uncompensated term for comparison).
@@ -843,8 +843,8 @@ def uncertainty_of(calib: Calibration):
     note : str
         Where the covariance came from, or why there is no map.
     """
-    from .dataset import DatasetError
-    from .uncertainty import uncertainty_map_of
+    from ..analysis.uncertainty import uncertainty_map_of
+    from ..io.dataset import DatasetError
 
     try:
         umap = uncertainty_map_of(calib)

@@ -6,9 +6,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .calibration import Calibration
-from .errors import InputError
-from .geometry import fit_similarity
+from ..core.errors import InputError
+from ..core.geometry import fit_similarity
+from ..io.calibration import Calibration
 
 
 @dataclass

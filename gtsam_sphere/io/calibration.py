@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .camera import SphereCamera
+from ..core.camera import SphereCamera
 from .dataset import (
     CALIBRATION_FORMAT,
     RIG_CALIBRATION_FORMAT,
@@ -64,7 +64,7 @@ class Calibration:
         """Unit rays of raw pixels as ``gtsam.Unit3``, for GTSAM's spherical-camera factors.
 
         Measurement corrections (Brown terms, learned correction) are applied
-        (``camera.unproject``). See :mod:`gtsam_sphere.external` for the
+        (``camera.unproject``). See :mod:`gtsam_sphere.estimation.external` for the
         factors, the angular noise and when to prefer the pixel factor.
 
         Parameters
@@ -88,7 +88,7 @@ class Calibration:
         """
         import gtsam
 
-        from .external import bearings
+        from ..estimation.external import bearings
 
         rays = bearings(self.camera, uv_px, hemisphere)
         bad = np.flatnonzero(~np.isfinite(rays).all(1))
@@ -293,7 +293,7 @@ def camera_from_dict(cam: dict, source: str = "<calibration>") -> SphereCamera:
     DatasetError
         Naming ``source`` and the entry when the object is incomplete or malformed.
     """
-    from .correct import correction_from_dict
+    from ..estimation.correct import correction_from_dict
 
     if not isinstance(cam, dict):
         raise DatasetError(f"{source}: 'camera' must be an object, got {type(cam).__name__}")

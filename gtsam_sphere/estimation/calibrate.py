@@ -1,8 +1,8 @@
 """The calibration pipeline: data -> init -> graph -> optimize -> (correct) -> result.
 
 :func:`adjust` runs one robust bundle adjustment with self-calibration on a
-:class:`~gtsam_sphere.graph.BundleProblem`; :func:`calibrate` runs the whole
-job on a :class:`~gtsam_sphere.dataset.Dataset`.
+:class:`~gtsam_sphere.estimation.graph.BundleProblem`; :func:`calibrate` runs the whole
+job on a :class:`~gtsam_sphere.io.dataset.Dataset`.
 """
 
 from __future__ import annotations
@@ -14,11 +14,18 @@ from dataclasses import asdict, dataclass, field, replace
 import gtsam
 import numpy as np
 
-from .calibration import Calibration
-from .camera import ALPHA0_RAD, DEFAULT_MODEL, Model, SphereCamera, parse_brown_terms, radial_terms
-from .dataset import Dataset
+from ..core.camera import (
+    ALPHA0_RAD,
+    DEFAULT_MODEL,
+    Model,
+    SphereCamera,
+    parse_brown_terms,
+    radial_terms,
+)
+from ..core.geometry import fit_similarity, incidence_deg
+from ..io.calibration import Calibration
+from ..io.dataset import Dataset
 from .diagnose import check_geometry, raise_if_degenerate
-from .geometry import fit_similarity, incidence_deg
 from .graph import (
     INTRINSICS_KEY,
     BundleProblem,
@@ -353,7 +360,7 @@ def repair_poses(
     RANSAC on bearings from the now-calibrated camera and the adjusted
     targets; the caller adjusts again. Returns the image indices changed.
     """
-    from .p3p import ransac_pose
+    from ..core.p3p import ransac_pose
 
     theta = adj.values.atVector(INTRINSICS_KEY)
     camera = camera_from_theta(problem, theta, dataset.width, dataset.height)
@@ -796,7 +803,11 @@ def readjust(
     consistent = np.linalg.norm(adj.residuals_px, axis=1) < 5.0 * adj.sigma_px
     start = gtsam.Values(adj.values) if values is None else values
     return adjust(
-        problem, start, optimizer, say, estimate_sigma=estimate_sigma,
+        problem,
+        start,
+        optimizer,
+        say,
+        estimate_sigma=estimate_sigma,
         first_stage_mask=consistent,
     )
 
@@ -944,9 +955,7 @@ def distrust_reasons(calib: Calibration, cov_theta, options, problem: BundleProb
             "or --model sphere if the lens itself folds (an orthographic lens past 180 deg)"
         )
     if st["n_outliers"] > 0.2 * max(st["n_observations"], 1):
-        out.append(
-            f"{st['n_outliers']} of {st['n_observations']} observations are beyond 5 sigma"
-        )
+        out.append(f"{st['n_outliers']} of {st['n_observations']} observations are beyond 5 sigma")
     return out
 
 

@@ -1,6 +1,6 @@
 """Using a calibrated camera in your own GTSAM graph (frozen calibration).
 
-Two ways to put observations of a calibrated :class:`~gtsam_sphere.camera.SphereCamera`
+Two ways to put observations of a calibrated :class:`~gtsam_sphere.core.camera.SphereCamera`
 into a graph whose variables are GTSAM camera poses ``world_from_cam``
 (``gtsam.Pose3``) and landmarks (``gtsam.Point3``), frames as in
 ``docs/conventions.md`` (camera ``x`` right, ``y`` down, ``z`` forward):
@@ -29,7 +29,7 @@ observations of one landmark (``max_obs`` of them at a time) into one
 
 **Bearing path** (:func:`bearings`, :func:`bearing_sigma_rad`,
 :func:`bearing_sqrt_information`, :func:`make_bearing_factors`,
-:meth:`Calibration.bearing <gtsam_sphere.calibration.Calibration.bearing>`).
+:meth:`Calibration.bearing <gtsam_sphere.io.calibration.Calibration.bearing>`).
 The calibration turns each pixel into a unit ray once (measurement
 corrections included, ``camera.unproject``) and GTSAM's C++ factors carry the
 load: ``gtsam.BearingFactor3D`` on ``Pose3`` + ``Point3`` (what
@@ -66,8 +66,8 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
-from .camera import SphereCamera, check_uv
-from .geometry import skew
+from ..core.camera import SphereCamera, check_uv
+from ..core.geometry import skew
 from .graph import Loss, robust_weight
 
 __all__ = [
@@ -151,7 +151,8 @@ class _Whitener:
 
     def _parameter(self, loss: Loss) -> float | None:
         """Read the estimator's threshold back from its functions; None if they disagree
-        with :func:`gtsam_sphere.graph.robust_weight` (then it is called per observation)."""
+        with :func:`gtsam_sphere.estimation.graph.robust_weight` (then it is called per
+        observation)."""
         m, big = self.mest, 1e6
         if loss is Loss.HUBER:
             k = m.weight(big) * big

@@ -1,7 +1,7 @@
 """Resample a calibrated camera's image onto a standard projection with ``cv2.remap``.
 
 For every output pixel: output pixel -> ray (the output projection) -> raw
-input pixel (the calibrated camera, :func:`gtsam_sphere.export.project_rays`)
+input pixel (the calibrated camera, :func:`gtsam_sphere.apps.export.project_rays`)
 -> ``map_x, map_y`` (float32, OpenCV pixel convention on both sides). The
 whole field of view the camera sees is kept where the output projection can
 hold it: ``equirectangular`` and ``cylindrical`` span any longitude range
@@ -36,8 +36,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .dataset import DatasetError, write_bytes_atomic
-from .errors import OptionsError
+from ..core.errors import OptionsError
+from ..io.dataset import DatasetError, write_bytes_atomic
 from .export import RayGrid, project_rays
 
 KINDS: tuple[str, ...] = ("perspective", "equirectangular", "cylindrical")
@@ -443,7 +443,7 @@ def run_cli(args) -> int:
     """Run ``gtsam-sphere undistort``; 0 on success (bad input raises an ``InputError``)."""
     import cv2
 
-    from .calibration import load_calibration
+    from ..io.calibration import load_calibration
 
     calib = load_calibration(args.calibration)
     if not Path(args.image).is_file():

@@ -13,7 +13,7 @@ Sigma_uv)``: the RMS length (px) of the 2-D projection error, the same
 definition as ``rms_px``.
 
 A learned kNN correction (``camera.correction`` with the fitted attributes
-of :class:`~gtsam_sphere.correct.KNNCorrection`) adds a local term: the
+of :class:`~gtsam_sphere.estimation.correct.KNNCorrection`) adds a local term: the
 correction at a pixel is the mean of its ``k`` neighbours' training
 corrections, so its standard error is the spread of those corrections about
 the prediction divided by ``sqrt(k)``:
@@ -97,15 +97,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .camera import BROWN_TERMS
-from .dataset import DatasetError
+from ..core.camera import BROWN_TERMS
+from ..io.dataset import DatasetError
 
 # names of the base intrinsics -> SphereCamera attribute
 _BASE = {"xp_px": "xp", "xp": "xp", "yp_px": "yp", "yp": "yp", "c_px": "c", "c": "c"}
 
 
 def _radial_names() -> tuple[str, ...]:
-    from . import camera as camera_module
+    from ..core import camera as camera_module
 
     return tuple(getattr(camera_module, "RADIAL_TERMS", ()))
 
@@ -271,7 +271,7 @@ def projection_jacobian(
         px per unit of each parameter; NaN where a perturbed camera has no
         pixel for the ray.
     """
-    from .export import project_rays
+    from ..apps.export import project_rays
 
     rays = np.asarray(rays, float).reshape(-1, 3)
     J = np.zeros((len(rays), 2, len(names)))
@@ -312,7 +312,7 @@ def ray_jacobian(
         ray itself has no effect (``A @ ray = 0`` to first order). NaN where a
         moved ray has no pixel.
     """
-    from .export import project_rays
+    from ..apps.export import project_rays
 
     rays = np.asarray(rays, float).reshape(-1, 3)
     h = float(step_rad) if step_rad is not None else 0.5 / max(abs(float(camera.c)), 1e-9)
@@ -507,7 +507,7 @@ def knn_sigma_px(correction, uv_px: np.ndarray) -> np.ndarray | None:
     ``sqrt(sum_j |y_j - y_hat|^2 / (k - 1)) / sqrt(k)`` over the ``k``
     training neighbours ``j`` (``y`` their training corrections, ``y_hat``
     the prediction, the uniform mean). ``None`` when ``correction`` is not a
-    fitted :class:`~gtsam_sphere.correct.KNNCorrection` (no training set).
+    fitted :class:`~gtsam_sphere.estimation.correct.KNNCorrection` (no training set).
     For a local-linear model (``degree_ == 1``, the pure sphere mapping) this
     is the plain average's figure, an approximation: the spread then holds the
     field's local gradient (too large) and the plane's leverage at the border
@@ -689,7 +689,7 @@ def uncertainty_map(
         not finite and positive or given without compensation, or no
         observation falls on a cell with a ray.
     """
-    from .export import pixel_rays
+    from ..apps.export import pixel_rays
 
     cov = np.asarray(covariance, float)
     names = list(names)

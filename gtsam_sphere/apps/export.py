@@ -1,6 +1,6 @@
 """Export a calibrated camera to standard models: OpenCV fisheye / rational, Kalibr.
 
-The calibrated camera (:class:`~gtsam_sphere.camera.SphereCamera`) is a ray
+The calibrated camera (:class:`~gtsam_sphere.core.camera.SphereCamera`) is a ray
 field: every pixel of the observed region has a ray. A standard model is
 fitted to that field by Levenberg-Marquardt (numpy, analytic Jacobians),
 minimising the pixel distance between the standard model's projection of
@@ -63,7 +63,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .dataset import DatasetError, write_bytes_atomic, write_json_atomic
+from ..io.dataset import DatasetError, write_bytes_atomic, write_json_atomic
 
 logger = logging.getLogger(__name__)
 
@@ -1305,7 +1305,7 @@ def add_cli_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run_cli(args) -> int:
     """Run ``gtsam-sphere export``: 0 on success, 1 if the fit is poor (bad input raises)."""
-    from .calibration import load_calibration
+    from ..io.calibration import load_calibration
 
     calib = load_calibration(args.calibration)
     result = export_calibration(

@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from .errors import DatasetError, InputError
+from ..core.errors import DatasetError, InputError
 
 DATASET_FORMAT = "gtsam-sphere/dataset@1"
 RIG_DATASET_FORMAT = "gtsam-sphere/dataset@2"

@@ -4,7 +4,7 @@ A rig (``dataset@2``) is several cameras fixed to one body; images that share a
 ``frame`` were taken at one rig pose. This module calibrates it in three steps:
 
 1. every camera is calibrated alone by the single-camera pipeline
-   (:func:`gtsam_sphere.calibrate.calibrate`, each camera with its own options),
+   (:func:`gtsam_sphere.estimation.calibrate.calibrate`, each camera with its own options),
    all in the dataset's world frame (the targets tie them);
 2. ``cam_from_rig`` of each camera is the robust average, over the frames it shares
    with an already placed camera, of the relative pose
@@ -43,10 +43,10 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from ..core.camera import Model
+from ..io.calibration import Calibration, RigCalibration
+from ..io.dataset import DatasetError, RigDataset, read_json, split_rig
 from .calibrate import CalibrationOptions, calibrate
-from .calibration import Calibration, RigCalibration
-from .camera import Model
-from .dataset import DatasetError, RigDataset, read_json, split_rig
 
 logger = logging.getLogger(__name__)
 
@@ -702,7 +702,7 @@ def run_cli(args, base: CalibrationOptions, progress: Callable[[str], None] | No
     """
     import sys
 
-    from .dataset import load_rig_dataset
+    from ..io.dataset import load_rig_dataset
 
     rig = load_rig_dataset(args.dataset)
     for iid, why in rig.skipped_images:

@@ -106,7 +106,7 @@ def check_points_cam(points_cam: np.ndarray) -> np.ndarray:
 def parse_brown_terms(text: str | None) -> tuple[str, ...]:
     """Parse ``"k1,k2,p1"`` into an ordered tuple of Brown term names.
 
-    Raises :class:`~gtsam_sphere.errors.OptionsError` (a ``ValueError``) naming an
+    Raises :class:`~gtsam_sphere.core.errors.OptionsError` (a ``ValueError``) naming an
     unknown term. ``"all"`` selects all seven.
     """
     if text is None or text.strip() == "":

@@ -36,9 +36,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .camera import SphereCamera, check_uv
+from ..core.camera import SphereCamera, check_uv
+from ..core.p3p import ransac_pose
 from .graph import robust_sigma_px
-from .p3p import ransac_pose
 
 __all__ = ["ResectionResult", "resect"]
 

@@ -7,7 +7,7 @@ enough control in each block). :func:`check_geometry` looks for the classic
 failures and returns one :class:`Problem` per finding, naming the images or
 targets concerned and what to capture next; :func:`raise_if_degenerate`
 turns the fatal ones into a :class:`DegenerateGeometryError` (a
-:class:`~gtsam_sphere.errors.InputError`, so the command line exits 2).
+:class:`~gtsam_sphere.core.errors.InputError`, so the command line exits 2).
 
 The checks are pure functions of the dataset (and, for the pose-dependent
 ones, of the initial ``cam_from_world`` poses); nothing is adjusted.
@@ -43,9 +43,9 @@ from typing import Any
 
 import numpy as np
 
-from ._compat import StrEnum
-from .dataset import Dataset
-from .errors import DegenerateGeometryError
+from ..core._compat import StrEnum
+from ..core.errors import DegenerateGeometryError
+from ..io.dataset import Dataset
 
 logger = logging.getLogger(__name__)
 
@@ -206,7 +206,7 @@ def check_geometry(
         Poses of ``dataset``'s images, ``p_cam = R @ p_world + t``: a pair
         ``(R (M,3,3), t (M,3))``, an ``(M, 3, 4)`` array ``[R | t]`` or an object
         with ``cam_from_world_R`` / ``cam_from_world_t`` (the
-        :class:`~gtsam_sphere.calibrate.Initialisation`). Rows with NaN are
+        :class:`~gtsam_sphere.estimation.calibrate.Initialisation`). Rows with NaN are
         ignored. Without poses the baseline and planar checks are not run.
     min_points_per_image : int
         Images with fewer observations are reported (``few-points``); 6 is
@@ -516,7 +516,7 @@ def raise_if_degenerate(
         Output of :func:`check_geometry`.
     warn : callable(str), optional
         Receives one line per non-fatal problem (``"warning: [code] message ->
-        advice"``). Default: each is a warning of the ``gtsam_sphere.diagnose``
+        advice"``). Default: each is a warning of the ``gtsam_sphere.estimation.diagnose``
         logger (``"[code] message -> advice"``).
 
     Returns

@@ -29,9 +29,9 @@ from dataclasses import dataclass, field
 import gtsam
 import numpy as np
 
-from ._compat import StrEnum
-from .camera import sphere_residual
-from .errors import DatasetError
+from ..core._compat import StrEnum
+from ..core.camera import sphere_residual
+from ..core.errors import DatasetError
 
 
 def pose_key(i: int) -> int:

@@ -58,7 +58,7 @@ class DegenerateGeometryError(DatasetError):
     Parameters
     ----------
     problems : sequence of Problem
-        The fatal findings of :func:`gtsam_sphere.diagnose.check_geometry`
+        The fatal findings of :func:`gtsam_sphere.estimation.diagnose.check_geometry`
         (each with ``message``, ``code`` and ``advice``).
 
     Attributes

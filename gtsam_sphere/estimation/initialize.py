@@ -57,8 +57,8 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from .errors import InitialisationError
-from .p3p import ransac_pose
+from ..core.errors import InitialisationError
+from ..core.p3p import ransac_pose
 
 __all__ = [
     "MAPPINGS",
@@ -260,8 +260,9 @@ class LensHypothesis:
 
 
 def _family(mapping: str, f_px: float, pp: np.ndarray) -> LensHypothesis:
-    return LensHypothesis(mapping, float(f_px), np.asarray(pp, float), None,
-                          float(np.radians(_DOMAIN_DEG[mapping])))
+    return LensHypothesis(
+        mapping, float(f_px), np.asarray(pp, float), None, float(np.radians(_DOMAIN_DEG[mapping]))
+    )
 
 
 def observed_disc(uv_px: np.ndarray, width: int, height: int):
@@ -386,7 +387,8 @@ class _Problem:
         # hypotheses are ranked on at most ``max_per_image`` observations of an image (an
         # evenly spread, fixed subset: dense boards cost no more than sparse rooms)
         self.scored_of_image = [
-            idx if idx.size <= max_per_image
+            idx
+            if idx.size <= max_per_image
             else idx[np.linspace(0, idx.size - 1, max_per_image).round().astype(int)]
             for idx in self.obs_of_image
         ]
@@ -503,8 +505,10 @@ def _pp_search(problem, images, seeds, hyp, thr_px, size, quick_images, quick_se
     grid = [replace(hyp, principal_point_px=centre + o) for o in offsets]
     quick = [problem.cost(quick_images, quick_seeds, h, thr_px, 64, False) for h in grid]
     shortlist = [grid[k] for k in np.argsort(quick)[:3]]
-    scored = [(problem.cost(images, seeds, h, thr_px, 300, True), k, h)
-              for k, h in enumerate([hyp, *shortlist])]
+    scored = [
+        (problem.cost(images, seeds, h, thr_px, 300, True), k, h)
+        for k, h in enumerate([hyp, *shortlist])
+    ]
     best_cost, _, best = min(scored, key=lambda x: (x[0], x[1]))
     centre = best.principal_point_px
     for dx in (-0.01, 0.0, 0.01):
@@ -559,7 +563,7 @@ def _joint_refine(problem, images, hyp, rot, trans, mask, thr_px):
     """
     from scipy.optimize import least_squares
 
-    from .p3p import _so3_exp
+    from ..core.p3p import _so3_exp
 
     posed = [i for i in images if np.all(np.isfinite(rot[i]))]
     rows = [problem.obs_of_image[i][mask[problem.obs_of_image[i]]] for i in posed]
@@ -607,8 +611,14 @@ def _joint_refine(problem, images, hyp, rot, trans, mask, thr_px):
         sparsity[np.concatenate([2 * obs_rows, 2 * obs_rows + 1])[:, None], cols] = True
     try:
         sol = least_squares(
-            residuals, x0, jac_sparsity=sparsity, loss="soft_l1", f_scale=thr_px,
-            x_scale="jac", max_nfev=40, method="trf",
+            residuals,
+            x0,
+            jac_sparsity=sparsity,
+            loss="soft_l1",
+            f_scale=thr_px,
+            x_scale="jac",
+            max_nfev=40,
+            method="trf",
         )
     except (ValueError, np.linalg.LinAlgError):
         return None

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 import gtsam
 import numpy as np
 
-from ._compat import StrEnum
+from ..core._compat import StrEnum
 
 
 class OptimizerKind(StrEnum):
@@ -139,8 +139,10 @@ def optimize(
         if progress:
             progress(f"{label}iteration {it:3d}  cost {new_cost:.6e}")
         if not np.isfinite(new_cost) or new_cost > 1e3 * max(best_cost, 1e-300):
-            status = "diverged: cost is not finite" if not np.isfinite(new_cost) else (
-                f"diverged: cost grew from {best_cost:.3e} to {new_cost:.3e}"
+            status = (
+                "diverged: cost is not finite"
+                if not np.isfinite(new_cost)
+                else (f"diverged: cost grew from {best_cost:.3e} to {new_cost:.3e}")
             )
             break
         if new_cost <= best_cost:

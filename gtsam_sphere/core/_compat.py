@@ -21,4 +21,3 @@ class StrEnum(str, enum.Enum):
 
     __str__ = str.__str__
     __format__ = str.__format__
-

@@ -8,9 +8,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .calibrate import CalibrationOptions, calibrate, initialise
-from .camera import Model
-from .dataset import Dataset, load_checkpoints, load_dataset, write_json_atomic
+from ..core.camera import Model
+from ..estimation.calibrate import CalibrationOptions, calibrate, initialise
+from ..io.dataset import Dataset, load_checkpoints, load_dataset, write_json_atomic
 from .evaluate import evaluate_calibration
 
 # (label, model, Brown terms): the rows of Chow et al. (2018) Tables 1-2, then ours

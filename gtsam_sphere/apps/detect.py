@@ -52,7 +52,7 @@ all-or-nothing) that are partly out of view or strongly foreshortened.
 :func:`recover_dataset` closes the loop: calibrate the detections (``--recover``,
 model ``--recover-model``, default ``radial``) or take a calibration
 (``--recover-with``); resect each image with the calibration fixed
-(:mod:`gtsam_sphere.resect`) and project every board corner; refine each prediction
+(:mod:`gtsam_sphere.estimation.resect`) and project every board corner; refine each prediction
 locally (``cv2.cornerSubPix`` in a window scaled to the predicted square, then the
 saddle fit) and keep it only if it is a chessboard saddle within
 ``min(3 px, 0.3 square)`` of its prediction; for a chessboard image with no detection,
@@ -77,7 +77,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .errors import DatasetError, InputError, OptionsError
+from ..core.errors import DatasetError, InputError, OptionsError
 
 __all__ = [
     "BoardSpec",
@@ -1301,14 +1301,14 @@ def detect_images(
         "camera": {"width": int(size[0]), "height": int(size[1])},
         "targets": targets,
         "images": images,
-        "source": {"detector": "gtsam_sphere.detect", "board": board.text},
+        "source": {"detector": "gtsam_sphere.apps.detect", "board": board.text},
     }
     return dataset, report
 
 
 def write_json_atomic(obj: dict, path: str) -> None:
     """Write ``obj`` as JSON to ``path`` atomically (``dataset.write_json_atomic``)."""
-    from .dataset import write_json_atomic as _write
+    from ..io.dataset import write_json_atomic as _write
 
     _write(path, obj)
 
@@ -1403,7 +1403,7 @@ def predict_and_refine(
     """Recover the board corners of one image that the detector missed.
 
     The pose is resected from the detected corners with the calibration fixed
-    (:func:`gtsam_sphere.resect.resect`); every other corner of the board is projected
+    (:func:`gtsam_sphere.estimation.resect.resect`); every other corner of the board is projected
     with ``camera.project`` and refined locally: ``cv2.cornerSubPix`` in a window scaled to
     the predicted local square size, then the detector's saddle fit. A corner is kept
     when the refined point is a chessboard saddle (:func:`saddle_score`, ring contrast),
@@ -1441,7 +1441,7 @@ def predict_and_refine(
     status : str
         ``"ok"`` or why nothing could be predicted.
     """
-    from .resect import resect
+    from ..estimation.resect import resect
 
     points = board.object_points_m()
     ids = [k for k in detected if k in points]
@@ -1615,7 +1615,7 @@ def recover_dataset(
     board : BoardSpec
         Chessboard or ChArUco board.
     model : str
-        Model of the internal calibrations (``gtsam_sphere.camera.Model``); the
+        Model of the internal calibrations (``gtsam_sphere.core.camera.Model``); the
         default ``radial`` extrapolates smoothly towards the periphery.
     calibration : Calibration, optional
         Use its camera for the first predictions instead of calibrating the detections.
@@ -1637,8 +1637,8 @@ def recover_dataset(
         A new ``dataset@1`` document with the recovered observations and targets.
     report : RecoveryReport
     """
-    from .calibrate import CalibrationOptions, calibrate
-    from .dataset import parse_dataset
+    from ..estimation.calibrate import CalibrationOptions, calibrate
+    from ..io.dataset import parse_dataset
 
     if board.kind not in ("chessboard", "charuco"):
         raise OptionsError(
@@ -1850,8 +1850,8 @@ def run_cli(args: argparse.Namespace) -> int:
         return 2
     recovery = None
     if getattr(args, "recover", False) or getattr(args, "recover_with", None):
-        from .calibration import load_calibration
-        from .camera import Model
+        from ..core.camera import Model
+        from ..io.calibration import load_calibration
 
         def say(line: str) -> None:
             if not getattr(args, "no_progress", False):

@@ -1,0 +1,1 @@
+"""Layer 3, analysis: accuracy against check points, uncertainty, comparisons."""

@@ -1,0 +1,2 @@
+"""Layer 2, estimation: factors, solvers, initialisation, kNN corrections,
+calibration runs, rigs."""
