@@ -26,6 +26,22 @@ def test_radial_round_trip_past_90_degrees(brown):
     np.testing.assert_allclose(back, rays, atol=1e-9)
 
 
+@pytest.mark.parametrize("w", [-1.2, 0.7, 1.4])
+def test_warped_radial_round_trip_to_175_degrees(w):
+    """The warp (a field that grows like tan, or squeezes its rim like the FOV model):
+    pixel -> ray -> pixel over the whole sphere, and its series at the optical axis."""
+    cam = SphereCamera(1600, 1200, 801.3, 598.2, 420.0, radial={"w": w, "g3": 0.01})
+    rays = _directions(np.random.default_rng(3), 4000, 175.0)
+    uv = cam.project(3.7 * rays)
+    np.testing.assert_allclose(cam.unproject(uv), rays, atol=1e-9)
+    assert cam.max_alpha_rad() == pytest.approx(np.pi)
+    # either side of the series branch at the axis (alpha < 1e-4) agrees with g itself
+    x = np.array([1e-6, 0.99e-4, 1.01e-4, 1e-3])
+    near = np.column_stack([x, np.zeros(4), np.ones(4)])
+    g = radial_g(np.arctan(x), np.array([0.01]), warp=w)
+    np.testing.assert_allclose(cam.ideal_from_points(near)[:, 0] / 420.0, g, rtol=1e-9)
+
+
 def test_radial_unproject_is_unique_where_sphere_needs_a_hemisphere():
     """A ray at 120 deg: the radial mapping finds it from the pixel alone."""
     ray = np.array([[np.sin(np.radians(120)), 0.0, np.cos(np.radians(120))]])

@@ -107,7 +107,7 @@ _BASE = {"xp_px": "xp", "xp": "xp", "yp_px": "yp", "yp": "yp", "c_px": "c", "c":
 def _radial_names() -> tuple[str, ...]:
     from ..core import camera as camera_module
 
-    return tuple(getattr(camera_module, "RADIAL_TERMS", ()))
+    return (camera_module.WARP_TERM, *camera_module.RADIAL_TERMS)
 
 
 def intrinsic_value(camera, name: str) -> float:

@@ -32,6 +32,9 @@ from .errors import OptionsError
 
 BROWN_TERMS: tuple[str, ...] = ("k1", "k2", "k3", "p1", "p2", "a1", "a2")
 RADIAL_TERMS: tuple[str, ...] = ("g3", "g5", "g7", "g9", "g11", "g13")
+#: key of the radial mapping's warp (:func:`radial_warp`, a fixed shape constant) in
+#: ``SphereCamera.radial`` when the lens needs one (a field that saturates its rim)
+WARP_TERM = "w"
 #: normalising angle of the radial mapping's polynomial (rad)
 ALPHA0_RAD = math.pi / 2
 #: a fold of the Brown map farther than this many ``brown_scale_px`` from the principal
@@ -183,11 +186,41 @@ def radial_terms(n: int) -> tuple[str, ...]:
     return RADIAL_TERMS[:n]
 
 
-def radial_g(alpha: np.ndarray, coeffs: np.ndarray, derivative: bool = False):
-    """Radial mapping ``g(alpha) = alpha + A0 * sum_i g_i (alpha / A0)^(2i+3)``, ``A0 = pi/2``.
+def radial_warp(alpha: np.ndarray, w: float) -> np.ndarray:
+    """Warped incidence ``beta(alpha) = atan2(k sin(alpha), cos(alpha)) / k``, ``k = exp(w)``.
 
-    ``c * g(alpha)`` is the geodesic distance (px) on the virtual sphere from
-    the principal point to the image point; ``g = alpha`` is equidistant.
+    The field-of-view model's shape (Devernay and Faugeras 2001) normalised to slope 1
+    on the axis: ``w = 0`` is ``beta = alpha``; ``w < 0`` bends towards ``tan(alpha)``
+    (a perspective lens), ``w > 0`` saturates (a lens that squeezes its rim).
+    Increasing on ``[0, pi]`` for every ``w``; ``beta(pi) = pi / k``.
+
+    Parameters
+    ----------
+    alpha : ndarray, shape (N,)
+        Incidence angles (rad).
+    w : float
+        Log of the warp ``k`` (dimensionless).
+
+    Returns
+    -------
+    beta : ndarray, shape (N,)
+    """
+    k = math.exp(w)
+    a = np.asarray(alpha, float)
+    return np.arctan2(k * np.sin(a), np.cos(a)) / k
+
+
+def radial_g(
+    alpha: np.ndarray, coeffs: np.ndarray, derivative: bool = False, warp: float | None = None
+):
+    """Radial mapping ``g(alpha) = h(alpha) = alpha + A0 * sum_i g_i (alpha / A0)^(2i+3)``.
+
+    ``A0 = pi/2``. ``c * g(alpha)`` is the geodesic distance (px) on the virtual sphere
+    from the principal point to the image point; ``g = alpha`` is equidistant. With a
+    ``warp`` ``w`` (``k = exp(w)``): ``g(alpha) = h(phi) / k`` with ``phi = atan2(k
+    sin(alpha), cos(alpha))`` (so ``g = beta`` of :func:`radial_warp` when every ``g_i``
+    is 0); ``phi / A0`` spans ``[0, 2]`` like ``alpha / A0``, which keeps the
+    polynomial's coefficients of order one for any ``k``.
 
     Parameters
     ----------
@@ -197,23 +230,45 @@ def radial_g(alpha: np.ndarray, coeffs: np.ndarray, derivative: bool = False):
         ``g3, g5, ...`` (dimensionless).
     derivative : bool
         Also return ``dg/dalpha`` (N,) and ``dg/dcoeffs`` (N, G).
+    warp : float or None
+        ``w`` (None: no warp). A shape constant chosen by the initialisation, not
+        estimated: a free ``w`` is nearly redundant with the polynomial.
     """
-    t = np.asarray(alpha, float) / ALPHA0_RAD
-    g = np.array(alpha, float, copy=True)
+    if warp is None:
+        x = np.array(alpha, float, copy=True)
+    else:
+        k = math.exp(warp)
+        a = np.asarray(alpha, float)
+        sin_a, cos_a = np.sin(a), np.cos(a)
+        x = np.arctan2(k * sin_a, cos_a)
+    t = x / ALPHA0_RAD
+    h = np.array(x, float, copy=True)
     G = len(coeffs)
     powers = np.empty((len(t), G))
     for i in range(G):
         powers[:, i] = t ** (2 * i + 3)
-    g += ALPHA0_RAD * powers @ np.asarray(coeffs, float)
+    h += ALPHA0_RAD * powers @ np.asarray(coeffs, float)
+    if warp is None:
+        g = h
+    else:
+        g = h / k
     if not derivative:
         return g
-    dg = np.ones_like(g)
+    dh = np.ones_like(h)
     for i in range(G):
-        dg += (2 * i + 3) * coeffs[i] * t ** (2 * i + 2)
-    return g, dg, ALPHA0_RAD * powers
+        dh += (2 * i + 3) * coeffs[i] * t ** (2 * i + 2)
+    if warp is None:
+        return g, dh, ALPHA0_RAD * powers
+    dphi_da = k / (cos_a**2 + (k * sin_a) ** 2)
+    return g, dh * dphi_da / k, ALPHA0_RAD * powers / k
 
 
-def ideal_projection(points_cam: np.ndarray, radial: np.ndarray | None, jacobians: bool = False):
+def ideal_projection(
+    points_cam: np.ndarray,
+    radial: np.ndarray | None,
+    jacobians: bool = False,
+    warp: float | None = None,
+):
     """Ideal image point on a unit sphere (c = 1), relative to the principal point.
 
     ``sphere`` mapping (``radial`` None, Eq. 1-4): ``m = P[:2] / |P|``.
@@ -229,6 +284,8 @@ def ideal_projection(points_cam: np.ndarray, radial: np.ndarray | None, jacobian
     radial : ndarray, shape (G,), or None
     jacobians : bool
         Also return ``dm/dP`` (N, 2, 3) and ``dm/dradial`` (N, 2, G).
+    warp : float or None
+        ``w`` of :func:`radial_warp` for the radial mapping (None: no warp).
 
     Returns
     -------
@@ -254,9 +311,12 @@ def ideal_projection(points_cam: np.ndarray, radial: np.ndarray | None, jacobian
     sin_a = rho / norm
     small = alpha < 1e-4
     safe_sin = np.where(small, 1.0, sin_a)
-    out = radial_g(alpha, radial, derivative=jacobians)
+    out = radial_g(alpha, radial, derivative=jacobians, warp=warp)
     g = out[0] if jacobians else out
     kappa = (radial[0] / ALPHA0_RAD**2) if len(radial) else 0.0
+    if warp is not None:  # g = alpha + ((1 - k^2) / 3 + g3 k^2 / A0^2) alpha^3 + O(alpha^5)
+        k2 = math.exp(2.0 * warp)
+        kappa = kappa * k2 + (1.0 - k2) / 3.0
     # s = g / sin(alpha), smooth and even in alpha: series at the axis
     s = np.where(small, 1.0 + (1.0 / 6.0 + kappa) * alpha**2, g / safe_sin)
     m = s[:, None] * u[:, :2]
@@ -288,6 +348,7 @@ def sphere_residual(
     points_cam: np.ndarray,
     jacobians: bool = False,
     radial_names: tuple[str, ...] | None = None,
+    warp: float | None = None,
 ):
     """Residual of the collinearity condition on the sphere, in pixels.
 
@@ -309,6 +370,8 @@ def sphere_residual(
     radial_names : tuple of str (length G) or None
         None: the paper's sphere mapping; a tuple: the radial mapping with
         these coefficients (``()`` is equidistant).
+    warp : float or None
+        The radial mapping's fixed warp ``w`` (:func:`radial_g`); None: none.
 
     Returns
     -------
@@ -322,11 +385,11 @@ def sphere_residual(
     coeffs = dict(zip(brown_names, theta[b0:]))
     xbar = uv_px - pp
     if not jacobians:
-        m = ideal_projection(points_cam, radial)
+        m = ideal_projection(points_cam, radial, warp=warp)
         if brown_names:
             return xbar - brown_distortion(xbar, coeffs, scale_px) - c * m
         return xbar - c * m
-    m, J_m, J_r = ideal_projection(points_cam, radial, jacobians=True)
+    m, J_m, J_r = ideal_projection(points_cam, radial, jacobians=True, warp=warp)
     n = len(m)
     if brown_names:
         delta, Jd, Jc = brown_distortion(xbar, coeffs, scale_px, jacobians=True)
@@ -533,7 +596,8 @@ class SphereCamera:
     radial : dict or None
         ``None``: the paper's sphere mapping (``c * P[:2] / |P|``). A dict
         ``{"g3": .., "g5": ..}``: the radial mapping ``c * g(alpha)`` of
-        :func:`radial_g` (``{}`` is equidistant).
+        :func:`radial_g` (``{}`` is equidistant); a key ``"w"`` (:data:`WARP_TERM`)
+        warps its variable (:func:`radial_warp`).
     """
 
     width: int
@@ -576,6 +640,11 @@ class SphereCamera:
         if self.radial is None:
             return None
         return np.array([float(self.radial.get(t, 0.0)) for t in RADIAL_TERMS], float)
+
+    def _radial_warp(self) -> float | None:
+        if self.radial is None or WARP_TERM not in self.radial:
+            return None
+        return float(self.radial[WARP_TERM])
 
     def distortion_px(self, uv_px: np.ndarray) -> np.ndarray:
         """Total measurement correction at raw pixels (N, 2): learned + Brown, px.
@@ -650,7 +719,9 @@ class SphereCamera:
         ideal_px : ndarray, shape (N, 2)
         """
         p = check_points_cam(points_cam)
-        out = ideal_projection(p, self._radial_coeffs(), jacobians=jacobians)
+        out = ideal_projection(
+            p, self._radial_coeffs(), jacobians=jacobians, warp=self._radial_warp()
+        )
         if not jacobians:
             return self.c * out
         return self.c * out[0], self.c * out[1]
@@ -708,7 +779,7 @@ class SphereCamera:
         """
         p = check_points_cam(points_cam)
         with np.errstate(invalid="ignore", divide="ignore"):
-            ideal = self.c * ideal_projection(p, self._radial_coeffs())
+            ideal = self.c * ideal_projection(p, self._radial_coeffs(), warp=self._radial_warp())
         pp = self.principal_point_px
         uv = pp + ideal
         if not self.brown and self.correction is None:
@@ -938,7 +1009,7 @@ class SphereCamera:
         if coeffs is None:
             return math.pi / 2
         grid = np.linspace(0.0, math.pi, 2049)
-        _, dg, _ = radial_g(grid, coeffs, derivative=True)
+        _, dg, _ = radial_g(grid, coeffs, derivative=True, warp=self._radial_warp())
         bad = np.flatnonzero(dg <= 0)
         return float(grid[bad[0] - 1]) if len(bad) else math.pi
 
@@ -1088,12 +1159,18 @@ class SphereCamera:
         with np.errstate(over="ignore"):
             r = np.hypot(m[:, 0], m[:, 1])
         a_max = self.max_alpha_rad()
-        g_max = float(radial_g(np.array([a_max]), coeffs)[0])
-        lo = np.zeros_like(r)
-        hi = np.full_like(r, a_max)
-        alpha = np.clip(r, 0.0, a_max)
+        warp = self._radial_warp()
+        g_max = float(radial_g(np.array([a_max]), coeffs, warp=warp)[0])
+        # start from a table of g (monotone up to a_max) and its bracket: Newton alone
+        # can cycle where a strong warp bends g
+        grid = np.linspace(0.0, a_max, 1025)
+        g_grid = radial_g(grid, coeffs, warp=warp)
+        j = np.clip(np.searchsorted(g_grid, r), 1, len(grid) - 1)
+        lo, hi = grid[j - 1], grid[j]
+        lo = np.where(r > g_grid[-1], a_max, lo)
+        alpha = np.clip(np.interp(r, g_grid, grid), lo, hi)
         for _ in range(60):  # safeguarded Newton on g(alpha) = r
-            g, dg, _ = radial_g(alpha, coeffs, derivative=True)
+            g, dg, _ = radial_g(alpha, coeffs, derivative=True, warp=warp)
             f = g - r
             lo = np.where(f < 0, alpha, lo)
             hi = np.where(f > 0, alpha, hi)

@@ -17,10 +17,12 @@ import numpy as np
 from ..core.camera import (
     ALPHA0_RAD,
     DEFAULT_MODEL,
+    WARP_TERM,
     Model,
     SphereCamera,
     parse_brown_terms,
     radial_terms,
+    radial_warp,
 )
 from ..core.geometry import fit_similarity, incidence_deg
 from ..io.calibration import Calibration
@@ -410,6 +412,8 @@ def camera_from_theta(
     radial = None
     if problem.radial_names is not None:
         radial = {n: vals[n] for n in problem.radial_names}
+        if problem.radial_warp is not None:
+            radial[WARP_TERM] = float(problem.radial_warp)
     return SphereCamera(
         width=width,
         height=height,
@@ -424,32 +428,46 @@ def camera_from_theta(
 
 
 def initial_radial(
-    uv_px: np.ndarray, points_cam: np.ndarray, principal_point_px: np.ndarray, n_terms: int
+    uv_px: np.ndarray,
+    points_cam: np.ndarray,
+    principal_point_px: np.ndarray,
+    n_terms: int,
+    warp_w: float = 0.0,
 ) -> np.ndarray:
     """Initial ``[c, g3, g5, ...]`` of the radial mapping from initial poses.
 
     Linear least squares of ``|uv - pp| = c * g(alpha)`` over the observations
     (N,2), (N,3), reweighted twice with Huber weights against poor initial
     poses; falls back to equidistant (``g = alpha``) when the fit is not
-    usable.
+    usable. With a warp ``warp_w`` (not 0) the polynomial's variable is
+    ``k beta(alpha)`` (:func:`~gtsam_sphere.core.camera.radial_g`).
     """
     r = np.linalg.norm(uv_px - principal_point_px, axis=1)
     norm = np.linalg.norm(points_cam, axis=1)
     alpha = np.arccos(np.clip(points_cam[:, 2] / np.where(norm > 0, norm, 1.0), -1, 1))
     ok = np.isfinite(alpha) & np.isfinite(r) & (norm > 0)
-    t = alpha[ok] / ALPHA0_RAD
-    A = np.column_stack([alpha[ok]] + [ALPHA0_RAD * t ** (2 * i + 3) for i in range(n_terms)])
-    b = r[ok]
-    w = np.ones(len(b))
-    c_eq = float(np.sum(b * alpha[ok]) / max(np.sum(alpha[ok] ** 2), 1e-12))
+    if warp_w == 0.0:
+        return _fit_radial(r[ok], alpha[ok], n_terms)
+    # g = h(phi) / k, phi = k beta (radial_g): fit h in phi, then c = c_h * k
+    k = float(np.exp(warp_w))
+    cg = _fit_radial(r[ok], k * radial_warp(alpha[ok], warp_w), n_terms)
+    return np.concatenate([[cg[0] * k], cg[1:]])
+
+
+def _fit_radial(r: np.ndarray, beta: np.ndarray, n_terms: int) -> np.ndarray:
+    """``[c, g3, ...]`` of ``r = c * (beta + A0 sum g_i (beta / A0)^(2i+3))`` (M,), (M,)."""
+    t = beta / ALPHA0_RAD
+    A = np.column_stack([beta] + [ALPHA0_RAD * t ** (2 * i + 3) for i in range(n_terms)])
+    w = np.ones(len(r))
+    c_eq = float(np.sum(r * beta) / max(np.sum(beta**2), 1e-12))
     fallback = np.concatenate([[c_eq], np.zeros(n_terms)])
-    if len(b) < 2 * (n_terms + 1):
+    if len(r) < 2 * (n_terms + 1):
         return fallback
     x = fallback
     for _ in range(3):
         sw = np.sqrt(w)
-        x = np.linalg.lstsq(A * sw[:, None], b * sw, rcond=None)[0]
-        res = np.abs(A @ x - b)
+        x = np.linalg.lstsq(A * sw[:, None], r * sw, rcond=None)[0]
+        res = np.abs(A @ x - r)
         k = 2.0 * 1.4826 * max(float(np.median(res)), 1e-9)
         w = np.where(res <= k, 1.0, k / np.maximum(res, 1e-300))
     if not np.all(np.isfinite(x)) or x[0] <= 0:
@@ -495,6 +513,9 @@ class Initialisation:
     principal_point_px : ndarray, shape (2,) or None
         The initialisation's principal point (the image centre, or the centre of the
         disc the observations fill, refitted with the poses); None: the image centre.
+    warp_w : float
+        The initial lens's warp (:class:`~.initialize.LensHypothesis`); not 0: the radial
+        mapping gets the warp term ``w`` starting there.
     """
 
     dataset: Dataset
@@ -505,6 +526,7 @@ class Initialisation:
     f_px: float
     inlier_mask: np.ndarray | None = None
     principal_point_px: np.ndarray | None = None
+    warp_w: float = 0.0
 
 
 def initialise(
@@ -550,6 +572,7 @@ def initialise(
         float(init.f_px),
         inliers,
         init.principal_point_px.copy(),
+        float(init.lens.warp_w),
     )
 
 
@@ -635,6 +658,9 @@ def _calibrate_once(
     if options.model.uses_radial:
         radial_names = radial_terms(options.radial_terms)
         brown_names = options.brown_terms
+    warp_w = init.warp_w if radial_names is not None and init.warp_w != 0.0 else None
+    if warp_w is not None:
+        say(f"radial mapping with a warp (the initial lens squeezes its rim): w = {warp_w:.3f}")
     problem = BundleProblem(
         obs_image=dataset.obs_image,
         obs_target=dataset.obs_target,
@@ -650,6 +676,7 @@ def _calibrate_once(
         if options.fixed_intrinsics is None
         else np.asarray(options.fixed_intrinsics, float),
         radial_names=radial_names,
+        radial_warp=warp_w,
     )
     world_from_cam = [
         gtsam.Pose3(gtsam.Rot3(R), gtsam.Point3(*t)).inverse() for R, t in zip(init_R, init_t)
@@ -657,7 +684,7 @@ def _calibrate_once(
     if radial_names is None:
         theta0 = np.concatenate([pp, [c0], np.zeros(len(brown_names))])
     else:
-        cg = initial_radial(dataset.uv_px, pc, pp, len(radial_names))
+        cg = initial_radial(dataset.uv_px, pc, pp, len(radial_names), warp_w or 0.0)
         say(f"initial radial mapping: c = {cg[0]:.1f} px, g = {np.round(cg[1:], 4).tolist()}")
         theta0 = np.concatenate([pp, cg, np.zeros(len(brown_names))])
     if problem.fixed_intrinsics is not None:

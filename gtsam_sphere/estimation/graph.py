@@ -155,11 +155,18 @@ class _SharedEvaluation:
 
     def __init__(self, blocks: list[ObservationBlock]):
         first = blocks[0]
-        model = (first.brown_names, first.brown_scale_px, first.noise, first.radial_names)
+        model = (
+            first.brown_names,
+            first.brown_scale_px,
+            first.noise,
+            first.radial_names,
+            first.radial_warp,
+        )
         for b in blocks:
-            if (b.brown_names, b.brown_scale_px, b.noise, b.radial_names) != model:
+            if (b.brown_names, b.brown_scale_px, b.noise, b.radial_names, b.radial_warp) != model:
                 raise ValueError("blocks sharing an evaluation must share model and noise")
-        self.brown_names, self.brown_scale_px, self.noise, self.radial_names = model
+        self.brown_names, self.brown_scale_px, self.noise, self.radial_names = model[:4]
+        self.radial_warp = model[4]
         self.pose_keys = sorted({k for b in blocks for k in b.pose_keys})
         self.point_keys = sorted({k for b in blocks for k in b.point_keys})
         self.all_keys = sorted({*self.pose_keys, *self.point_keys, INTRINSICS_KEY})
@@ -286,6 +293,7 @@ class _SharedEvaluation:
             pc.T,
             jacobians=jacobians,
             radial_names=self.radial_names,
+            warp=self.radial_warp,
         )
         e = out[0] if jacobians else out
         sigma = self.noise.sigma_px
@@ -349,6 +357,8 @@ class ObservationBlock:
     noise : NoiseOptions
     radial_names : tuple of str or None
         Radial-mapping coefficients in the intrinsics vector; None: sphere mapping.
+    radial_warp : float or None
+        The radial mapping's fixed warp ``w`` (:func:`~gtsam_sphere.core.camera.radial_g`).
     """
 
     def __init__(
@@ -363,8 +373,10 @@ class ObservationBlock:
         brown_scale_px,
         noise: NoiseOptions,
         radial_names: tuple[str, ...] | None = None,
+        radial_warp: float | None = None,
     ):
         self.radial_names = None if radial_names is None else tuple(radial_names)
+        self.radial_warp = None if radial_warp is None else float(radial_warp)
         self.pose_keys = [int(k) for k in pose_keys]
         self.point_keys = [int(k) for k in point_keys]
         self.pose_local = np.asarray(pose_local, int)
@@ -627,6 +639,8 @@ class BundleProblem:
         targets by at most ``IMAGES_PER_FACTOR`` images, :func:`_tile_observations`).
     radial_names : tuple of str or None
         Radial-mapping coefficients estimated (``Model.RADIAL``); None: sphere mapping.
+    radial_warp : float or None
+        Fixed warp ``w`` of the radial mapping (from the initialisation); None: none.
     """
 
     obs_image: np.ndarray
@@ -643,6 +657,7 @@ class BundleProblem:
     datum_sigma_scale: float = 1e-3
     fixed_intrinsics: np.ndarray | None = None
     radial_names: tuple[str, ...] | None = None
+    radial_warp: float | None = None
 
     def __post_init__(self):
         if self.corrections_px is None:
@@ -716,6 +731,7 @@ class BundleProblem:
                     self.brown_scale_px,
                     self.noise,
                     self.radial_names,
+                    self.radial_warp,
                 )
             )
         ObservationBlock.share_evaluation(blocks)

@@ -57,6 +57,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from ..core.camera import radial_warp
 from ..core.errors import InitialisationError
 from ..core.p3p import ransac_pose
 
@@ -70,7 +71,17 @@ __all__ = [
     "observed_disc",
 ]
 
-MAPPINGS: tuple[str, ...] = ("pinhole", "stereographic", "equidistant", "equisolid", "sphere")
+MAPPINGS: tuple[str, ...] = (
+    "pinhole",
+    "stereographic",
+    "equidistant",
+    "equisolid",
+    "sphere",
+    "fov",
+)
+#: warp ``k`` of the ``"fov"`` family, ``r/f = atan2(k sin a, cos a) / k``: a lens that
+#: squeezes its rim (the field-of-view model with omega = 2.2 rad has k = 3.9)
+_FOV_K = 4.0
 
 _GRID_RATIO = 1.15  # neighbouring coarse focal hypotheses differ by this factor
 _DOMAIN_DEG = {
@@ -79,6 +90,7 @@ _DOMAIN_DEG = {
     "equidistant": 180.0,
     "equisolid": 180.0,
     "sphere": 90.0,
+    "fov": 180.0,
 }
 _MIN_HALF_FOV_DEG = 12.0  # the observed field is at least 24 deg across
 _ALPHA0_RAD = np.pi / 2  # scale of alpha in the refit polynomial (conditioning)
@@ -101,6 +113,8 @@ def _rho(mapping: str, alpha: np.ndarray) -> np.ndarray:
             r = a_in
         elif mapping == "equisolid":
             r = 2.0 * np.sin(0.5 * a_in)
+        elif mapping == "fov":
+            r = np.arctan2(_FOV_K * np.sin(a_in), np.cos(a_in)) / _FOV_K
         else:
             r = np.sin(a_in)
     return np.where(inside, r, np.nan)
@@ -121,6 +135,9 @@ def _alpha_from_radius(r_px: np.ndarray, mapping: str, f_px: float) -> np.ndarra
         elif mapping == "equisolid":
             a = 2.0 * np.arcsin(np.minimum(0.5 * rho, 1.0))
             a = np.where(0.5 * rho <= 1.0, a, np.nan)
+        elif mapping == "fov":
+            kr = _FOV_K * rho
+            a = np.where(kr <= np.pi, np.arctan2(np.sin(kr), _FOV_K * np.cos(kr)), np.nan)
         else:
             a = np.where(rho <= 1.0, np.arcsin(np.minimum(rho, 1.0)), np.nan)
     return np.where(a <= np.radians(_DOMAIN_DEG[mapping]) + 1e-12, a, np.nan)
@@ -184,11 +201,16 @@ class LensHypothesis:
     principal_point_px : (2,) array
         Principal point (u, v), px.
     coeffs : (K,) array or None
-        For ``"fitted"``: ``r(alpha) = f_px * sum_k coeffs[k] * alpha^(2k+1)`` with
-        ``coeffs[0] = 1``.
+        For ``"fitted"``: ``r(alpha) = f_px * sum_k coeffs[k] * beta^(2k+1)`` with
+        ``coeffs[0] = 1`` and ``beta`` the warped incidence
+        (:func:`~gtsam_sphere.core.camera.radial_warp` of ``warp_w``).
     alpha_max_rad : float
         Largest incidence the hypothesis maps (its domain, or where the fitted
         polynomial stops increasing or leaves the fitted range).
+    warp_w : float
+        Log of the warp ``k`` of the fitted polynomial's variable (0: ``beta = alpha``);
+        the ``"fov"`` family has ``log(4)``. The calibration's radial mapping starts
+        from it (and estimates it) when it is not 0.
     """
 
     mapping: str
@@ -196,6 +218,13 @@ class LensHypothesis:
     principal_point_px: np.ndarray
     coeffs: np.ndarray | None = None
     alpha_max_rad: float = float("nan")
+    warp_w: float = 0.0
+
+    def beta(self, alpha_rad: np.ndarray) -> np.ndarray:
+        """The polynomial's variable at incidence ``alpha_rad`` (rad)."""
+        if self.warp_w == 0.0:
+            return np.asarray(alpha_rad, float)
+        return radial_warp(alpha_rad, self.warp_w)
 
     def _table(self):
         """(alpha (K,), r/f (K,)) over [0, pi]: the polynomial up to ``alpha_max_rad``,
@@ -204,13 +233,15 @@ class LensHypothesis:
         a = np.linspace(0.0, np.pi, 2049)
         poly = self._poly()
         a_end = self.alpha_max_rad
-        rho_end = np.polynomial.polynomial.polyval(a_end, poly)
-        slope = np.polynomial.polynomial.polyval(a_end, np.polynomial.polynomial.polyder(poly))
-        rho = np.where(
-            a <= a_end,
-            np.polynomial.polynomial.polyval(a, poly),
-            rho_end + max(float(slope), 0.05) * (a - a_end),
-        )
+        rho_in = np.polynomial.polynomial.polyval(self.beta(a), poly)
+        if self.warp_w == 0.0:
+            rho_end = np.polynomial.polynomial.polyval(a_end, poly)
+            slope = np.polynomial.polynomial.polyval(a_end, np.polynomial.polynomial.polyder(poly))
+        else:  # d rho / d alpha at the end, numerically
+            b_end = radial_warp(np.array([a_end - 1e-4, a_end]), self.warp_w)
+            r_end = np.polynomial.polynomial.polyval(b_end, poly)
+            rho_end, slope = float(r_end[1]), float((r_end[1] - r_end[0]) / 1e-4)
+        rho = np.where(a <= a_end, rho_in, rho_end + max(float(slope), 0.05) * (a - a_end))
         return a, rho
 
     def _poly(self):
@@ -261,7 +292,12 @@ class LensHypothesis:
 
 def _family(mapping: str, f_px: float, pp: np.ndarray) -> LensHypothesis:
     return LensHypothesis(
-        mapping, float(f_px), np.asarray(pp, float), None, float(np.radians(_DOMAIN_DEG[mapping]))
+        mapping,
+        float(f_px),
+        np.asarray(pp, float),
+        None,
+        float(np.radians(_DOMAIN_DEG[mapping])),
+        float(np.log(_FOV_K)) if mapping == "fov" else 0.0,
     )
 
 
@@ -529,8 +565,8 @@ def _radial_basis(alpha: np.ndarray) -> np.ndarray:
     )
 
 
-def _hypothesis_from_poly(b: np.ndarray, pp: np.ndarray, alpha_obs: np.ndarray):
-    """The ``"fitted"`` hypothesis of ``r = basis(alpha) @ b`` (None when unusable).
+def _hypothesis_from_poly(b: np.ndarray, pp: np.ndarray, alpha_obs: np.ndarray, warp_w: float):
+    """The ``"fitted"`` hypothesis of ``r = basis(beta(alpha)) @ b`` (None when unusable).
 
     Its domain ends at 1.1 times the 99.5th percentile of the observed incidences or at
     the fold of the polynomial; None when the fold lies inside 0.9 times that range.
@@ -541,13 +577,14 @@ def _hypothesis_from_poly(b: np.ndarray, pp: np.ndarray, alpha_obs: np.ndarray):
     poly = np.zeros(2 * _N_POLY)
     poly[1::2] = coeffs
     grid = np.linspace(0.0, np.pi, 2049)
-    deriv = np.polynomial.polynomial.polyval(grid, np.polynomial.polynomial.polyder(poly))
+    beta = grid if warp_w == 0.0 else radial_warp(grid, warp_w)
+    deriv = np.polynomial.polynomial.polyval(beta, np.polynomial.polynomial.polyder(poly))
     fold = grid[np.argmax(deriv <= 0)] if np.any(deriv <= 0) else np.pi
     a_obs = float(np.percentile(alpha_obs, 99.5))
     if fold < 0.9 * a_obs:
         return None
     a_max = float(min(fold, 1.1 * a_obs, np.pi))
-    return LensHypothesis("fitted", float(b[0]), np.asarray(pp, float), coeffs, a_max)
+    return LensHypothesis("fitted", float(b[0]), np.asarray(pp, float), coeffs, a_max, warp_w)
 
 
 def _joint_refine(problem, images, hyp, rot, trans, mask, thr_px):
@@ -585,7 +622,7 @@ def _joint_refine(problem, images, hyp, rot, trans, mask, thr_px):
     ok = np.isfinite(r_grid)
     if ok.sum() < _N_POLY + 2:
         return None
-    b0 = np.linalg.lstsq(_radial_basis(grid[ok]), r_grid[ok], rcond=None)[0]
+    b0 = np.linalg.lstsq(_radial_basis(hyp.beta(grid[ok])), r_grid[ok], rcond=None)[0]
     n_cam = len(posed)
     x0 = np.concatenate([hyp.principal_point_px, b0, np.zeros(6 * n_cam)])
 
@@ -598,7 +635,7 @@ def _joint_refine(problem, images, hyp, rot, trans, mask, thr_px):
         p = np.einsum("nij,nj->ni", R[owner], pts) + t[owner]
         s = np.hypot(p[:, 0], p[:, 1])
         alpha = np.arctan2(s, p[:, 2])
-        r = _radial_basis(alpha) @ x[2 : 2 + _N_POLY]
+        r = _radial_basis(hyp.beta(alpha)) @ x[2 : 2 + _N_POLY]
         scale = r / np.maximum(s, 1e-12)
         res = x[:2] + scale[:, None] * p[:, :2] - uv
         return np.nan_to_num(res, nan=1e6).ravel()
@@ -622,7 +659,7 @@ def _joint_refine(problem, images, hyp, rot, trans, mask, thr_px):
         )
     except (ValueError, np.linalg.LinAlgError):
         return None
-    new = _hypothesis_from_poly(sol.x[2 : 2 + _N_POLY], sol.x[:2], alpha0)
+    new = _hypothesis_from_poly(sol.x[2 : 2 + _N_POLY], sol.x[:2], alpha0, hyp.warp_w)
     if new is None:
         return None
     R, t = poses(sol.x)
@@ -872,7 +909,7 @@ def initialize_poses(
         f"{100 * _MIN_INLIER_FRACTION:.0f} % consistent with P3P poses): {detail}. "
         "Check the target ids and coordinates (units, mislabelled points) and the image "
         "size; a lens beyond the families tried (pinhole, stereographic, equidistant, "
-        "equisolid, orthographic) may need a first guess."
+        "equisolid, orthographic, field-of-view k = 4) may need a first guess."
     )
 
 
