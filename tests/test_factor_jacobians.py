@@ -54,10 +54,15 @@ MODELS = {
 
 
 @pytest.mark.parametrize("name", list(DIRECTIONS))
-@pytest.mark.parametrize("model", list(MODELS))
+@pytest.mark.parametrize("model", [*MODELS, "radial4+warp", "radial2+tan-warp"])
 @pytest.mark.parametrize("loss", [Loss.L2, Loss.HUBER])
 def test_block_jacobians_match_numerical(name, model, loss):
-    brown_names, radial_names = MODELS[model]
+    # the warp (a fixed shape constant of the radial mapping): squeezing and stretching
+    warped = {"radial4+warp": (4, np.log(4.0)), "radial2+tan-warp": (2, -1.0)}
+    if model in warped:
+        brown_names, radial_names, warp = (), RADIAL_TERMS[: warped[model][0]], warped[model][1]
+    else:
+        (brown_names, radial_names), warp = MODELS[model], None
     rng = np.random.default_rng(1)
     values = _values(rng, DIRECTIONS[name], brown_names, radial_names)
     uv = np.array([[640.0 + 3.0, 401.0 - 2.0]])  # residual big enough to be in Huber's tail
@@ -73,6 +78,7 @@ def test_block_jacobians_match_numerical(name, model, loss):
         500.0,
         noise,
         radial_names,
+        warp,
     )
     H = [None] * 3
     block.evaluate(None, values, H)

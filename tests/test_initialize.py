@@ -15,6 +15,7 @@ from gtsam_sphere.estimation.initialize import (
 from gtsam_sphere.simulate.lenses import (
     Equidistant,
     Equisolid,
+    FieldOfView,
     KannalaBrandt,
     PinholeBrown,
     Stereographic,
@@ -321,6 +322,13 @@ _CIRCLE_CASES = {
         1600,
         1200,
         (0.08, 0.0),
+    ),
+    "fov260-circle0.35": (  # a lens that squeezes its rim: 90-130 deg in 13 % of the radius
+        FieldOfView,
+        dict(f=0.35 * 1600 / 0.8094, omega=2.2, max_angle_deg=130.0),
+        1600,
+        1600,
+        (0.02, 0.0),
     ),
     "pinhole-brown-offset": (
         PinholeBrown,

@@ -82,6 +82,9 @@ MAPPINGS: tuple[str, ...] = (
 #: warp ``k`` of the ``"fov"`` family, ``r/f = atan2(k sin a, cos a) / k``: a lens that
 #: squeezes its rim (the field-of-view model with omega = 2.2 rad has k = 3.9)
 _FOV_K = 4.0
+#: the warp of the refit polynomial's variable per family (LensHypothesis.warp_w): the
+#: family's own shape, so a few odd terms follow it (a perspective lens grows like tan)
+_WARP_W = {"fov": float(np.log(_FOV_K)), "pinhole": float(np.log(0.25))}
 
 _GRID_RATIO = 1.15  # neighbouring coarse focal hypotheses differ by this factor
 _DOMAIN_DEG = {
@@ -297,7 +300,7 @@ def _family(mapping: str, f_px: float, pp: np.ndarray) -> LensHypothesis:
         np.asarray(pp, float),
         None,
         float(np.radians(_DOMAIN_DEG[mapping])),
-        float(np.log(_FOV_K)) if mapping == "fov" else 0.0,
+        _WARP_W.get(mapping, 0.0),
     )
 
 
