@@ -43,7 +43,7 @@ from __future__ import annotations
 
 import math
 import os
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -121,11 +121,7 @@ class RigOptions:
     checkpoint_noise_m: float = 0.0
     min_targets_per_image: int = 8
     preferred_targets_per_image: int = 20
-    room: SimulationOptions = None  # type: ignore[assignment]
-
-    def __post_init__(self) -> None:
-        if self.room is None:
-            self.room = SimulationOptions()
+    room: SimulationOptions = field(default_factory=SimulationOptions)
 
     def validate(self) -> None:
         """Raise ``ValueError`` naming the first inconsistent option."""
