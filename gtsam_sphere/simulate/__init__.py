@@ -6,10 +6,16 @@ Public API::
     sim = simulate_room(SimulationOptions(lens="sphere", fov_deg=200, seed=1))
     write_simulation(sim, "out/")   # dataset.json, checkpoints.json, truth.json
 
+    from gtsam_sphere.simulate import RigOptions, simulate_rig, write_rig_simulation
+    rig = simulate_rig(RigOptions(rig="ring4", n_frames=12, seed=1))
+    write_rig_simulation(rig, "out_rig/")   # dataset@2, checkpoints@1, truth@2
+
 Lens families live in :mod:`gtsam_sphere.simulate.lenses`, the room and the
 shared pipeline in :mod:`gtsam_sphere.simulate.room`, the board and the cube
 corner (``SimulationOptions(scene="board" | "object3d")``) in
-:mod:`gtsam_sphere.simulate.scenes`. :func:`add_cli_arguments` and
+:mod:`gtsam_sphere.simulate.scenes`, camera rigs moving through the room
+(``dataset@2``: stereo, dual360, ring4, mixed) in :mod:`gtsam_sphere.simulate.rigs`.
+:func:`add_cli_arguments` and
 :func:`run_cli` implement ``gtsam-sphere simulate``.
 """
 
@@ -36,6 +42,15 @@ from .lenses import (
     lens_from_dict,
     make_lens,
 )
+from .rigs import (
+    RIG_KINDS,
+    RigCamera,
+    RigOptions,
+    RigSimulation,
+    rig_cameras,
+    simulate_rig,
+    write_rig_simulation,
+)
 from .room import (
     SCENES,
     SIGMA_MODES,
@@ -50,6 +65,7 @@ from .room import (
 
 __all__ = [
     "LENS_KINDS",
+    "RIG_KINDS",
     "SCENES",
     "SIGMA_MODES",
     "DoubleSphere",
@@ -60,6 +76,9 @@ __all__ = [
     "KannalaBrandt",
     "NonCentral",
     "PinholeBrown",
+    "RigCamera",
+    "RigOptions",
+    "RigSimulation",
     "Simulation",
     "SimulationOptions",
     "SphereLens",
@@ -73,8 +92,12 @@ __all__ = [
     "make_lens",
     "nikon_like",
     "options_from_args",
+    "rig_cameras",
+    "rig_options_from_args",
     "run_cli",
+    "simulate_rig",
     "simulate_room",
+    "write_rig_simulation",
     "write_simulation",
 ]
 
@@ -154,9 +177,110 @@ def add_cli_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParse
         "omega=1.0 (fov), k1=0.03 (repeatable)",
     )
     parser.add_argument(
+        "--rig",
+        choices=list(RIG_KINDS),
+        default=None,
+        help="simulate a camera rig moving through the room (dataset@2): stereo, dual360 "
+        "(back-to-back 220 deg), ring4 (four outward cameras, no common field of view), "
+        "mixed (fisheye + 60 deg pinhole); with --seed, --noise-px, --frames, --n-targets, "
+        "--n-checkpoints, --checkpoint-noise-m, --target-sigma-m",
+    )
+    parser.add_argument(
+        "--frames", type=int, default=None, help="rigs: number of rig poses (default 12)"
+    )
+    parser.add_argument(
         "-o", "--out", "--output", dest="out", required=True, help="output directory"
     )
     return parser
+
+
+#: ``SimulationOptions`` fields that a rig simulation also takes (same flag, same meaning)
+_RIG_FIELDS = (
+    "seed",
+    "noise_px",
+    "n_targets",
+    "n_checkpoints",
+    "checkpoint_noise_m",
+    "target_sigma_m",
+)
+
+
+def rig_options_from_args(args: argparse.Namespace) -> RigOptions:
+    """Build :class:`RigOptions` from arguments parsed with ``--rig``.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        Parsed by a parser prepared with :func:`add_cli_arguments`.
+
+    Returns
+    -------
+    options : RigOptions
+
+    Raises
+    ------
+    ValueError
+        A single-camera option given with ``--rig`` (named), or a bad value.
+    """
+    unused = [
+        flag
+        for flag, (dest, _, _) in _FLAGS.items()
+        if dest not in _RIG_FIELDS and getattr(args, dest, None) is not None
+    ]
+    unused += [
+        flag
+        for flag, dest in (("--preset", "preset"), ("--cx", "cx"), ("--cy", "cy"))
+        if getattr(args, dest, None) is not None
+    ]
+    if getattr(args, "lens_option", None):
+        unused.append("--lens-option")
+    if unused:
+        raise ValueError(
+            f"single-camera option(s) {', '.join(unused)} not used with --rig "
+            "(the rig fixes its cameras)"
+        )
+    overrides: dict[str, Any] = {
+        name: getattr(args, name) for name in _RIG_FIELDS if getattr(args, name, None) is not None
+    }
+    if getattr(args, "frames", None) is not None:
+        overrides["n_frames"] = args.frames
+    options = RigOptions(rig=args.rig, **overrides)
+    options.validate()
+    return options
+
+
+def _run_rig_cli(args: argparse.Namespace) -> int:
+    """``gtsam-sphere simulate --rig KIND``: simulate a rig, write the three files."""
+    import sys
+
+    from ..core.errors import InputError
+
+    try:
+        options = rig_options_from_args(args)
+        sim = simulate_rig(options)
+    except (ValueError, InputError) as exc:
+        print(f"gtsam-sphere simulate: error: {exc}", file=sys.stderr)
+        return 2
+    paths = write_rig_simulation(sim, args.out)
+    stats = sim.truth["statistics"]
+    print(
+        f"simulated rig {options.rig} ({len(sim.cameras)} cameras) in the room, "
+        f"{stats['n_frames']} frames, seed {options.seed}"
+    )
+    for cam in sim.cameras:
+        cs = stats["cameras"][cam.id]
+        print(
+            f"  camera {cam.id}: {cam.lens.kind} {cam.fov_deg:g} deg, {cam.width}x{cam.height} px, "
+            f"{cs['n_images']} images, {cs['n_observations']} observations"
+        )
+    print(
+        f"images {stats['n_images']} ({stats['n_images_dropped']} dropped: too few targets), "
+        f"targets {stats['n_targets']}, observations {stats['n_observations']}, "
+        f"max incidence {stats['max_incidence_deg']:.1f} deg"
+    )
+    for key, path in paths.items():
+        print(f"  {key}: {path}")
+    return 0
 
 
 def options_from_args(args: argparse.Namespace) -> SimulationOptions:
@@ -196,6 +320,8 @@ def options_from_args(args: argparse.Namespace) -> SimulationOptions:
 def run_cli(args: argparse.Namespace) -> int:
     """Run ``gtsam-sphere simulate``: simulate, write the three files, print a summary.
 
+    With ``--rig KIND`` a camera rig (:func:`simulate_rig`, ``dataset@2``) instead.
+
     Parameters
     ----------
     args : argparse.Namespace
@@ -210,6 +336,13 @@ def run_cli(args: argparse.Namespace) -> int:
 
     from ..core.errors import InputError
 
+    if getattr(args, "rig", None) is not None:
+        return _run_rig_cli(args)
+    if getattr(args, "frames", None) is not None:
+        print(
+            "gtsam-sphere simulate: error: --frames is for --rig (else --n-images)", file=sys.stderr
+        )
+        return 2
     try:
         options = options_from_args(args)
         # the option checks alone (a ValueError from anywhere else is a bug: no catch-all)
