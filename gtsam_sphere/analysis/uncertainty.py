@@ -98,6 +98,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..core.camera import BROWN_TERMS
+from ..core.lie import skew
 from ..io.dataset import DatasetError
 
 # names of the base intrinsics -> SphereCamera attribute
@@ -373,11 +374,7 @@ def motion_jacobian(
 
 def _rotation_columns(A: np.ndarray, rays: np.ndarray) -> np.ndarray:
     """``d uv / d omega = A (-[ray]x)`` (N, 2, 3) from the ray Jacobian ``A`` (N, 2, 3)."""
-    skew = np.zeros((len(rays), 3, 3))
-    x, y, z = rays[:, 0], rays[:, 1], rays[:, 2]
-    skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -z, y, -x
-    skew[:, 1, 0], skew[:, 2, 0], skew[:, 2, 1] = z, -y, x
-    return -np.einsum("nij,njk->nik", A, skew)
+    return -np.einsum("nij,njk->nik", A, skew(rays))
 
 
 def _positive_range(value, name: str) -> float:

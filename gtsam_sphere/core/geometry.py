@@ -96,20 +96,6 @@ def fit_similarity(src: np.ndarray, dst: np.ndarray, with_scale: bool = True) ->
     return Similarity(scale, R, t)
 
 
-def skew(v: np.ndarray) -> np.ndarray:
-    """Skew-symmetric matrices of vectors: (..., 3) -> (..., 3, 3), ``skew(a) @ b = a x b``."""
-    v = np.asarray(v, float)
-    z = np.zeros(v.shape[:-1])
-    return np.stack(
-        [
-            np.stack([z, -v[..., 2], v[..., 1]], -1),
-            np.stack([v[..., 2], z, -v[..., 0]], -1),
-            np.stack([-v[..., 1], v[..., 0], z], -1),
-        ],
-        -2,
-    )
-
-
 def incidence_deg(points_cam: np.ndarray) -> np.ndarray:
     """Angle between camera-frame points (N, 3) and the optical axis +z, degrees in [0, 180]."""
     p = np.asarray(points_cam, float)

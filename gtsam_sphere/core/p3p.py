@@ -33,6 +33,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .lie import skew, so3_exp
+
 __all__ = ["PoseResult", "angular_errors_rad", "p3p", "ransac_pose"]
 
 _DEGENERATE_SIN = 1e-9  # |f_i x f_j| below this: duplicate bearings
@@ -357,15 +359,6 @@ def _sample_triplets(rng: np.random.Generator, n: int, k: int) -> np.ndarray:
     return np.stack([i0, i1, i2], axis=1)
 
 
-def _so3_exp(w: np.ndarray) -> np.ndarray:
-    """Rotation matrix of a rotation vector (3,), radians."""
-    th = np.linalg.norm(w)
-    k = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
-    if th < 1e-12:
-        return np.eye(3) + k
-    return np.eye(3) + np.sin(th) / th * k + (1 - np.cos(th)) / th**2 * (k @ k)
-
-
 def _refine_pose(
     bearings: np.ndarray,
     points: np.ndarray,
@@ -398,11 +391,7 @@ def _refine_pose(
         # d(ph)/dp = (I - ph ph^T)/|p| ; dp/dw = -[R X]x ; dp/dt = I
         proj = (np.eye(3)[None] - ph[:, :, None] * ph[:, None, :]) / nrm[:, None, None]
         rx = p - t
-        skew = np.zeros((len(p), 3, 3))
-        skew[:, 0, 1], skew[:, 0, 2] = rx[:, 2], -rx[:, 1]
-        skew[:, 1, 0], skew[:, 1, 2] = -rx[:, 2], rx[:, 0]
-        skew[:, 2, 0], skew[:, 2, 1] = rx[:, 1], -rx[:, 0]
-        jac = np.concatenate([proj @ skew, proj], axis=2)  # (N, 3, 6)
+        jac = np.concatenate([proj @ -skew(rx), proj], axis=2)  # (N, 3, 6)
         jw = jac * w[:, None, None]
         h = np.einsum("nki,nkj->ij", jw, jac)
         g = np.einsum("nki,nk->i", jw, r)
@@ -413,7 +402,7 @@ def _refine_pose(
             except np.linalg.LinAlgError:
                 lam *= 10
                 continue
-            R_new = _so3_exp(delta[:3]) @ R
+            R_new = so3_exp(delta[:3]) @ R
             t_new = t + delta[3:]
             c_new = cost_of(R_new, t_new)
             if np.isfinite(c_new) and c_new <= cost:

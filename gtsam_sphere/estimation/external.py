@@ -67,7 +67,7 @@ import gtsam
 import numpy as np
 
 from ..core.camera import SphereCamera, check_uv
-from ..core.geometry import skew
+from ..core.lie import skew
 from .graph import Loss, robust_weight
 
 __all__ = [

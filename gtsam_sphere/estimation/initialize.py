@@ -563,7 +563,7 @@ def _joint_refine(problem, images, hyp, rot, trans, mask, thr_px):
     """
     from scipy.optimize import least_squares
 
-    from ..core.p3p import _so3_exp
+    from ..core.lie import so3_exp
 
     posed = [i for i in images if np.all(np.isfinite(rot[i]))]
     rows = [problem.obs_of_image[i][mask[problem.obs_of_image[i]]] for i in posed]
@@ -591,7 +591,7 @@ def _joint_refine(problem, images, hyp, rot, trans, mask, thr_px):
 
     def poses(x):
         d = x[2 + _N_POLY :].reshape(n_cam, 6)
-        return np.stack([_so3_exp(w) @ r for w, r in zip(d[:, :3], R0)]), t0 + d[:, 3:]
+        return np.stack([so3_exp(w) @ r for w, r in zip(d[:, :3], R0)]), t0 + d[:, 3:]
 
     def residuals(x):
         R, t = poses(x)

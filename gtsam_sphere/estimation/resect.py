@@ -31,12 +31,12 @@ OpenCV's reprojection error, so the RMS compares with ``cv2.solvePnP`` +
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from ..core.camera import SphereCamera, check_uv
+from ..core.lie import skew, so3_exp
 from ..core.p3p import ransac_pose
 from .graph import robust_sigma_px
 
@@ -109,24 +109,6 @@ def _check_inputs(uv_px, xyz_world) -> tuple[np.ndarray, np.ndarray]:
     return check_uv(uv), xyz
 
 
-def _skew_batch(p: np.ndarray) -> np.ndarray:
-    """Cross-product matrices (N, 3, 3) of vectors (N, 3)."""
-    s = np.zeros((len(p), 3, 3))
-    s[:, 0, 1], s[:, 0, 2] = -p[:, 2], p[:, 1]
-    s[:, 1, 0], s[:, 1, 2] = p[:, 2], -p[:, 0]
-    s[:, 2, 0], s[:, 2, 1] = -p[:, 1], p[:, 0]
-    return s
-
-
-def _so3_exp(w: np.ndarray) -> np.ndarray:
-    """Rotation matrix (3, 3) of a rotation vector (3,), radians (Rodrigues)."""
-    th = float(np.linalg.norm(w))
-    k = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
-    if th < 1e-12:
-        return np.eye(3) + k
-    return np.eye(3) + math.sin(th) / th * k + (1.0 - math.cos(th)) / th**2 * (k @ k)
-
-
 def _huber(r: np.ndarray, k: float) -> tuple[np.ndarray, np.ndarray]:
     """Huber cost ``rho(r)`` and IRLS weight ``w(r)`` of whitened norms ``r`` (N,)."""
     rho = np.where(r <= k, 0.5 * r * r, k * r - 0.5 * k * k)
@@ -186,7 +168,7 @@ def _adjust_pose(
             _, w = _huber(np.where(ok, r, 0.0), loss_threshold)
             w = np.where(ok, w, 0.0)
             # de/dxi = -J @ [-[p]x | I]
-            dp = np.concatenate([-_skew_batch(p), np.broadcast_to(np.eye(3), (len(p), 3, 3))], 2)
+            dp = np.concatenate([-skew(p), np.broadcast_to(np.eye(3), (len(p), 3, 3))], 2)
             A = -np.einsum("nij,njk->nik", np.where(ok[:, None, None], J, 0.0), dp)
             e0 = np.where(ok[:, None], e, 0.0)
             H = np.einsum("n,nki,nkj->ij", w, A, A)
@@ -199,8 +181,8 @@ def _adjust_pose(
                 except np.linalg.LinAlgError:
                     lam *= 10.0
                     continue
-                Rn = _so3_exp(delta[:3]) @ R
-                tn = _so3_exp(delta[:3]) @ t + delta[3:]
+                Rn = so3_exp(delta[:3]) @ R
+                tn = so3_exp(delta[:3]) @ t + delta[3:]
                 _, en = residual(Rn, tn)
                 cn = cost(en, sigma)
                 if np.isfinite(cn) and cn <= c:
