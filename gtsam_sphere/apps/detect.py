@@ -78,6 +78,7 @@ import cv2
 import numpy as np
 
 from ..core.errors import DatasetError, InputError, OptionsError
+from ..core.robust import Loss, robust_weight
 
 __all__ = [
     "BoardSpec",
@@ -848,7 +849,7 @@ def _fit_aruco_marker(
             wts = np.ones_like(res)
         else:  # Huber weights at 2.5 robust sigma of the first stage's residuals
             scale = max(1.4826 * float(np.median(np.abs(res - np.median(res)))), 0.5)
-            wts = np.minimum(1.0, 2.5 * scale / np.maximum(np.abs(res), 1e-12))
+            wts, _ = robust_weight(np.abs(res), Loss.HUBER, 2.5 * scale)
         cost = float(np.sum(wts * res * res))
         damping = 1e-3
         for _ in range(max_iterations):

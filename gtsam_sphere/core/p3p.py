@@ -34,6 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .lie import skew, so3_exp
+from .robust import Loss, robust_weight
 
 __all__ = ["PoseResult", "angular_errors_rad", "p3p", "ransac_pose"]
 
@@ -378,7 +379,7 @@ def _refine_pose(
         p = points @ R_.T + t_
         r = p / np.linalg.norm(p, axis=1, keepdims=True) - bearings
         e = np.linalg.norm(r, axis=1)
-        return np.sum(np.where(e <= huber_rad, e * e, 2 * huber_rad * e - huber_rad**2))
+        return np.sum(robust_weight(e, Loss.HUBER, huber_rad)[1])
 
     cost = cost_of(R, t)
     for _ in range(n_iter):
@@ -387,7 +388,7 @@ def _refine_pose(
         ph = p / nrm[:, None]
         r = ph - bearings
         e = np.linalg.norm(r, axis=1)
-        w = np.where(e <= huber_rad, 1.0, huber_rad / np.maximum(e, 1e-300))
+        w, _ = robust_weight(e, Loss.HUBER, huber_rad)
         # d(ph)/dp = (I - ph ph^T)/|p| ; dp/dw = -[R X]x ; dp/dt = I
         proj = (np.eye(3)[None] - ph[:, :, None] * ph[:, None, :]) / nrm[:, None, None]
         rx = p - t

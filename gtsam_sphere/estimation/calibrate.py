@@ -23,6 +23,7 @@ from ..core.camera import (
     radial_terms,
 )
 from ..core.geometry import fit_similarity, incidence_deg
+from ..core.robust import Loss, robust_sigma_px, robust_weight
 from ..io.calibration import Calibration
 from ..io.dataset import Dataset
 from .diagnose import check_geometry, raise_if_degenerate
@@ -30,12 +31,9 @@ from .graph import (
     INTRINSICS_KEY,
     BundleProblem,
     Datum,
-    Loss,
     NoiseOptions,
     point_key,
     pose_key,
-    robust_sigma_px,
-    robust_weight,
 )
 from .optimize import OptimizationResult, OptimizerKind, OptimizerOptions, make_ordering, optimize
 
@@ -46,7 +44,6 @@ BROWN_DEFAULT_TERMS = ("k1", "k2", "k3", "p1", "p2")
 #: non-radial terms of the radial models unless told otherwise: decentering and affinity
 RADIAL_DEFAULT_TERMS = ("p1", "p2", "a1", "a2")
 
-# median of the norm of a 2-D standard normal vector: sqrt(2 ln 2)
 #: floor of the estimated image noise (px): no detector measures better, and below it
 #: perfect (simulated) data whitens residuals at the projection's numerical noise, so LM
 #: stalls and the covariance looks singular (seen at 1e-4 px; 0.001 px took 194 iterations)
@@ -451,7 +448,7 @@ def initial_radial(
         x = np.linalg.lstsq(A * sw[:, None], b * sw, rcond=None)[0]
         res = np.abs(A @ x - b)
         k = 2.0 * 1.4826 * max(float(np.median(res)), 1e-9)
-        w = np.where(res <= k, 1.0, k / np.maximum(res, 1e-300))
+        w, _ = robust_weight(res, Loss.HUBER, k)
     if not np.all(np.isfinite(x)) or x[0] <= 0:
         return fallback
     return np.concatenate([[x[0]], x[1:] / x[0]])

@@ -19,7 +19,7 @@ from sklearn.neighbors import KNeighborsRegressor, NearestNeighbors
 from sklearn.utils.validation import check_array, check_is_fitted
 
 from ..core.camera import check_uv
-from .graph import robust_sigma_px
+from ..core.robust import robust_sigma_px
 
 K_GRID = (3, 5, 8, 12, 16, 24, 32, 48, 64)
 DEGREES = (0, 1)

@@ -68,7 +68,7 @@ import numpy as np
 
 from ..core.camera import SphereCamera, check_uv
 from ..core.lie import skew
-from .graph import Loss, robust_weight
+from ..core.robust import Loss, robust_weight, whitening_scale
 
 __all__ = [
     "ProjectionBlocks",
@@ -151,7 +151,7 @@ class _Whitener:
 
     def _parameter(self, loss: Loss) -> float | None:
         """Read the estimator's threshold back from its functions; None if they disagree
-        with :func:`gtsam_sphere.estimation.graph.robust_weight` (then it is called per
+        with :func:`gtsam_sphere.core.robust.robust_weight` (then it is called per
         observation)."""
         m, big = self.mest, 1e6
         if loss is Loss.HUBER:
@@ -526,15 +526,13 @@ class ProjectionBlocks:
             e = _frozen_residual(self.camera, self._ideal[rows], R, t, p, False) @ S.T
             r = np.sqrt((e * e).sum(1))
             _, rho = self.whitener.weights(r)
-            with np.errstate(invalid="ignore", divide="ignore"):
-                scale = np.where(r > 0, np.sqrt(2.0 * rho) / r, 1.0)
+            scale = whitening_scale(r, rho)
             return e * scale[:, None], None, None, None
         e, J, pc = _frozen_residual(self.camera, self._ideal[rows], R, t, p, True)
         e = e @ S.T
         r = np.sqrt((e * e).sum(1))
         w, rho = self.whitener.weights(r)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            scale = np.where(r > 0, np.sqrt(2.0 * rho) / r, 1.0)
+        scale = whitening_scale(r, rho)
         sw = np.sqrt(w)
         if S[0, 1] == 0.0 and S[1, 0] == 0.0 and S[0, 0] == S[1, 1]:  # isotropic: S = s I
             J = J * S[0, 0]  # the einsum's numbers (but the sign of a zero), 30x faster

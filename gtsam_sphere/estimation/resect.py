@@ -38,11 +38,9 @@ import numpy as np
 from ..core.camera import SphereCamera, check_uv
 from ..core.lie import skew, so3_exp
 from ..core.p3p import ransac_pose
-from .graph import robust_sigma_px
+from ..core.robust import Loss, robust_sigma_px, robust_weight
 
 __all__ = ["ResectionResult", "resect"]
-
-# median of the norm of a 2-D standard normal vector: sqrt(2 ln 2)
 
 
 @dataclass
@@ -109,13 +107,6 @@ def _check_inputs(uv_px, xyz_world) -> tuple[np.ndarray, np.ndarray]:
     return check_uv(uv), xyz
 
 
-def _huber(r: np.ndarray, k: float) -> tuple[np.ndarray, np.ndarray]:
-    """Huber cost ``rho(r)`` and IRLS weight ``w(r)`` of whitened norms ``r`` (N,)."""
-    rho = np.where(r <= k, 0.5 * r * r, k * r - 0.5 * k * k)
-    w = np.where(r <= k, 1.0, k / np.maximum(r, 1e-300))
-    return rho, w
-
-
 def _adjust_pose(
     camera: SphereCamera,
     ideal_meas: np.ndarray,
@@ -146,7 +137,7 @@ def _adjust_pose(
 
     def cost(e, sigma):
         r = np.linalg.norm(e, axis=1) / sigma
-        rho, _ = _huber(np.where(np.isfinite(r), r, 1e6), loss_threshold)
+        _, rho = robust_weight(np.where(np.isfinite(r), r, 1e6), Loss.HUBER, loss_threshold)
         return float(rho.sum())
 
     _, e = residual(R, t)
@@ -165,7 +156,7 @@ def _adjust_pose(
             e = z - pred
             r = np.linalg.norm(e, axis=1) / sigma
             ok = np.isfinite(r) & np.all(np.isfinite(J), axis=(1, 2))
-            _, w = _huber(np.where(ok, r, 0.0), loss_threshold)
+            w, _ = robust_weight(np.where(ok, r, 0.0), Loss.HUBER, loss_threshold)
             w = np.where(ok, w, 0.0)
             # de/dxi = -J @ [-[p]x | I]
             dp = np.concatenate([-skew(p), np.broadcast_to(np.eye(3), (len(p), 3, 3))], 2)

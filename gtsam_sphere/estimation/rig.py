@@ -44,6 +44,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..core.camera import Model
+from ..core.robust import MEDIAN_NORM_3D, Loss, robust_weight
 from ..io.calibration import Calibration, RigCalibration
 from ..io.dataset import DatasetError, RigDataset, read_json, split_rig
 from .calibrate import CalibrationOptions, calibrate
@@ -54,9 +55,6 @@ logger = logging.getLogger(__name__)
 RIG_ADJUSTMENT = "per-camera + averaged extrinsics"
 #: Cauchy scale of the robust means, in robust standard deviations of the deviations
 CAUCHY_K = 3.0
-#: median of the norm of a 3-D standard normal vector: turns a median deviation into a
-#: per-axis standard deviation
-_MEDIAN_NORM_3D = 1.5382
 
 Pose = tuple[np.ndarray, np.ndarray]
 
@@ -184,8 +182,8 @@ class PoseMean:
 
 def _cauchy_weights(d: np.ndarray, floor: float) -> np.ndarray:
     """Cauchy weights of non-negative deviations ``d`` with a robust (median) scale."""
-    scale = max(float(np.median(d)) / _MEDIAN_NORM_3D, floor)
-    return 1.0 / (1.0 + (d / (CAUCHY_K * scale)) ** 2)
+    scale = max(float(np.median(d)) / MEDIAN_NORM_3D, floor)
+    return robust_weight(d, Loss.CAUCHY, CAUCHY_K * scale)[0]
 
 
 def robust_pose_mean(R: np.ndarray, t: np.ndarray, iterations: int = 50) -> PoseMean:
