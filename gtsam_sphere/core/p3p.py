@@ -33,6 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .geometry import fit_rigid
 from .lie import skew, so3_exp
 from .robust import Loss, robust_weight
 
@@ -101,30 +102,6 @@ def _inv3(m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return inv, det
 
 
-def _kabsch(p_cam: np.ndarray, p_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Rigid transform with ``p_cam ~ R @ p_world + t``, batched over leading axes.
-
-    Parameters
-    ----------
-    p_cam, p_world : (..., n, 3) corresponding points.
-
-    Returns
-    -------
-    R : (..., 3, 3) rotation, det +1.  t : (..., 3) translation.
-    """
-    mc = p_cam.mean(axis=-2)
-    mw = p_world.mean(axis=-2)
-    cov = np.einsum("...ni,...nj->...ij", p_cam - mc[..., None, :], p_world - mw[..., None, :])
-    u, _, vt = np.linalg.svd(cov)
-    d = np.sign(np.linalg.det(u @ vt))
-    d[d == 0] = 1.0
-    u = u.copy()
-    u[..., :, 2] *= d[..., None]
-    rot = u @ vt
-    t = mc - np.einsum("...ij,...j->...i", rot, mw)
-    return rot, t
-
-
 def _p3p_batch(
     bearings: np.ndarray, points: np.ndarray, n_polish: int = 2
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -171,7 +148,7 @@ def _p3p_batch(
         & (area2 > _DEGENERATE_AREA * np.where(longest2 > 0, longest2, 1.0))
         & (longest2 > 0)
     )
-    # normalise the scale for conditioning (restored through the Kabsch step)
+    # normalise the scale for conditioning (restored through the rigid fit)
     scale2 = np.where(ok_sample, (a2 + b2 + c2) / 3.0, 1.0)
     a2n, b2n, c2n = a2 / scale2, b2 / scale2, c2 / scale2
     ca = np.einsum("ki,ki->k", f2, f3)
@@ -231,7 +208,7 @@ def _p3p_batch(
     pw = np.broadcast_to(points[:, None], p_cam.shape)
     pw = np.where(valid[..., None, None], pw, np.eye(3))
     p_cam = np.where(valid[..., None, None], p_cam, np.eye(3))
-    rot, t = _kabsch(p_cam, pw)
+    rot, t = fit_rigid(pw, p_cam)
     return rot, t, valid
 
 
