@@ -39,7 +39,6 @@ def layer_of(name: str) -> int:
 KNOWN_UPWARD = {
     ("io.calibration", "estimation.correct"),  # load_calibration rebuilds the kNN correction
     ("io.calibration", "estimation.external"),
-    ("analysis.uncertainty", "apps.export"),  # ray helpers live in export
 }
 
 KNOWN_CYCLES = [

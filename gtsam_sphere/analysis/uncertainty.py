@@ -99,6 +99,7 @@ import numpy as np
 
 from ..core.camera import BROWN_TERMS
 from ..core.lie import skew
+from ..core.rays import pixel_rays, project_rays
 from ..io.dataset import DatasetError
 
 # names of the base intrinsics -> SphereCamera attribute
@@ -272,8 +273,6 @@ def projection_jacobian(
         px per unit of each parameter; NaN where a perturbed camera has no
         pixel for the ray.
     """
-    from ..apps.export import project_rays
-
     rays = np.asarray(rays, float).reshape(-1, 3)
     J = np.zeros((len(rays), 2, len(names)))
     for k, (name, h) in enumerate(zip(names, steps)):
@@ -313,8 +312,6 @@ def ray_jacobian(
         ray itself has no effect (``A @ ray = 0`` to first order). NaN where a
         moved ray has no pixel.
     """
-    from ..apps.export import project_rays
-
     rays = np.asarray(rays, float).reshape(-1, 3)
     h = float(step_rad) if step_rad is not None else 0.5 / max(abs(float(camera.c)), 1e-9)
     A = np.zeros((len(rays), 2, 3))
@@ -686,8 +683,6 @@ def uncertainty_map(
         not finite and positive or given without compensation, or no
         observation falls on a cell with a ray.
     """
-    from ..apps.export import pixel_rays
-
     cov = np.asarray(covariance, float)
     names = list(names)
     if cov.shape != (len(names), len(names)):

@@ -128,6 +128,9 @@ def fit_similarity(src: np.ndarray, dst: np.ndarray, with_scale: bool = True) ->
 
 
 def incidence_deg(points_cam: np.ndarray) -> np.ndarray:
-    """Angle between camera-frame points (N, 3) and the optical axis +z, degrees in [0, 180]."""
-    p = np.asarray(points_cam, float)
+    """Angle (deg, in [0, 180]) between camera-frame points or rays (N, 3) and the axis +z.
+
+    ``atan2(hypot(x, y), z)``; shape (N,).
+    """
+    p = np.asarray(points_cam, float).reshape(-1, 3)
     return np.degrees(np.arctan2(np.hypot(p[:, 0], p[:, 1]), p[:, 2]))
