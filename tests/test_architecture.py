@@ -36,16 +36,9 @@ def layer_of(name: str) -> int:
     return FOLDERS[name.split(".")[0]]
 
 
-KNOWN_UPWARD = {
-    ("io.calibration", "estimation.correct"),  # load_calibration rebuilds the kNN correction
-    ("io.calibration", "estimation.external"),
-}
+KNOWN_UPWARD: set[tuple[str, str]] = set()
 
-KNOWN_CYCLES = [
-    # the kNN loop (correct) calls the adjustment (calibrate) and is called by it, and
-    # load_calibration (calibration) rebuilds the kNN correction: all inside functions
-    {"io.calibration", "estimation.calibrate", "estimation.correct"},
-]
+KNOWN_CYCLES: list[set[str]] = []
 
 
 def _modules() -> dict[str, Path]:

@@ -13,7 +13,7 @@ Sigma_uv)``: the RMS length (px) of the 2-D projection error, the same
 definition as ``rms_px``.
 
 A learned kNN correction (``camera.correction`` with the fitted attributes
-of :class:`~gtsam_sphere.estimation.correct.KNNCorrection`) adds a local term: the
+of :class:`~gtsam_sphere.core.correction_model.KNNCorrection`) adds a local term: the
 correction at a pixel is the mean of its ``k`` neighbours' training
 corrections, so its standard error is the spread of those corrections about
 the prediction divided by ``sqrt(k)``:
@@ -501,7 +501,7 @@ def knn_sigma_px(correction, uv_px: np.ndarray) -> np.ndarray | None:
     ``sqrt(sum_j |y_j - y_hat|^2 / (k - 1)) / sqrt(k)`` over the ``k``
     training neighbours ``j`` (``y`` their training corrections, ``y_hat``
     the prediction, the uniform mean). ``None`` when ``correction`` is not a
-    fitted :class:`~gtsam_sphere.estimation.correct.KNNCorrection` (no training set).
+    fitted :class:`~gtsam_sphere.core.correction_model.KNNCorrection` (no training set).
     For a local-linear model (``degree_ == 1``, the pure sphere mapping) this
     is the plain average's figure, an approximation: the spread then holds the
     field's local gradient (too large) and the plane's leverage at the border

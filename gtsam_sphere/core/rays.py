@@ -1,5 +1,6 @@
 """Rays of pixels and pixels of rays for a calibrated camera (issue 14: one home in the core).
 
+:func:`bearings` unprojects raw pixels on the half of the sphere given;
 :func:`pixel_rays` unprojects raw pixels, each on its own half of the image
 sphere (:meth:`~gtsam_sphere.core.camera.SphereCamera.pixel_hemisphere`);
 :func:`project_rays` projects rays and keeps the pixels whose own ray comes back;
@@ -13,9 +14,47 @@ import math
 
 import numpy as np
 
+from .camera import SphereCamera, check_uv
 from .geometry import incidence_deg
 
-__all__ = ["RayGrid", "pixel_rays", "project_rays"]
+__all__ = ["RayGrid", "bearings", "camera_of", "pixel_rays", "project_rays"]
+
+
+def camera_of(calibration_or_camera) -> SphereCamera:
+    """The :class:`SphereCamera` of a ``Calibration`` (``.camera``) or the camera itself."""
+    cam = getattr(calibration_or_camera, "camera", calibration_or_camera)
+    if not isinstance(cam, SphereCamera):
+        raise TypeError(
+            f"expected a Calibration or a SphereCamera, got {type(calibration_or_camera).__name__}"
+        )
+    return cam
+
+
+def bearings(calibration_or_camera, uv_px: np.ndarray, hemisphere=1.0) -> np.ndarray:
+    """Unit rays of raw pixels in the camera frame (measurement corrections included).
+
+    Parameters
+    ----------
+    calibration_or_camera : Calibration or SphereCamera
+    uv_px : array_like, shape (N, 2)
+        Raw measured pixels.
+    hemisphere : float or array_like, shape (N,)
+        "sphere" mapping only: ``+1`` front half (incidence below 90 deg),
+        ``-1`` back half; the mapping is two-to-one past 90 deg. The "radial"
+        mapping is one-to-one up to ``camera.max_alpha_rad()`` and ignores it.
+
+    Returns
+    -------
+    rays : ndarray, shape (N, 3)
+        Unit vectors, camera frame (x right, y down, z forward); NaN rows
+        for pixels outside the model's image.
+    """
+    camera = camera_of(calibration_or_camera)
+    uv = check_uv(uv_px)
+    h = np.asarray(hemisphere, float)
+    if h.ndim and h.shape != (len(uv),):
+        raise ValueError(f"hemisphere must be a scalar or have shape ({len(uv)},), got {h.shape}")
+    return camera.unproject(uv, hemisphere=h)
 
 
 def pixel_rays(camera, uv_px: np.ndarray, hemisphere: np.ndarray | None = None) -> np.ndarray:

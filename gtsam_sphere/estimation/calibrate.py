@@ -687,7 +687,7 @@ def _calibrate_once(
     if options.model.uses_knn:
         from .correct import grey_box_loop
 
-        adj, correction, history = grey_box_loop(problem, adj, opt, options, say)
+        adj, correction, history = grey_box_loop(problem, adj, opt, options, say, adjust)
 
     cov_theta = None
     if options.covariance and problem.fixed_intrinsics is None:
