@@ -65,6 +65,8 @@ import numpy as np
 
 # the ray helpers live in the core; re-exported here for the export's callers
 from ..core.geometry import incidence_deg as incidence_deg
+from ..core.least_squares import Damping, LMResult
+from ..core.least_squares import levenberg_marquardt as _levenberg_marquardt
 from ..core.rays import RayGrid as RayGrid
 from ..core.rays import pixel_rays as pixel_rays
 from ..core.rays import project_rays as project_rays
@@ -371,14 +373,10 @@ def ds_valid(params: np.ndarray, rays: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------- least squares
 
 
-@dataclass
-class LMResult:
-    """Outcome of :func:`levenberg_marquardt`."""
-
-    x: np.ndarray
-    cost: float
-    iterations: int
-    converged: bool
+#: the export's damping: Marquardt's scaling, x4 on a worse step, /3 on a better one
+_EXPORT_DAMPING = Damping(
+    initial=1e-3, increase=4.0, increase_singular=10.0, decrease=3.0, floor=1e-12, ceiling=1e16
+)
 
 
 def levenberg_marquardt(
@@ -389,6 +387,8 @@ def levenberg_marquardt(
     rtol: float = 1e-12,
 ) -> LMResult:
     """Minimise ``sum(r(x)^2)`` by Levenberg-Marquardt with Marquardt's diagonal scaling.
+
+    The loop is :func:`gtsam_sphere.core.least_squares.levenberg_marquardt`.
 
     Parameters
     ----------
@@ -407,44 +407,35 @@ def levenberg_marquardt(
     Returns
     -------
     LMResult
+        ``converged`` unless the iteration limit stopped it (a stall, no step
+        lowering the cost at this precision, counts as converged).
     """
-    x = np.asarray(x0, float).copy()
-    r, J = fun(x)
-    cost = float(r @ r)
-    lam = 1e-3
-    converged = False
-    it = 0
-    while it < max_iterations:
-        it += 1
-        g = J.T @ r
-        A = J.T @ J
-        d = np.diag(A).copy()
-        d[~(d > 0)] = 1.0
-        accepted = False
-        while lam < 1e16:
-            try:
-                step = np.linalg.solve(A + lam * np.diag(d), -g)
-            except np.linalg.LinAlgError:
-                lam *= 10
-                continue
-            x_new = x + step
-            if feasible is None or feasible(x_new):
-                r_new, J_new = fun(x_new)
-                cost_new = float(r_new @ r_new)
-                if np.isfinite(cost_new) and cost_new < cost:
-                    accepted = True
-                    break
-            lam *= 4
-        if not accepted:
-            converged = True  # no descent direction left at this precision
-            break
-        small = cost - cost_new <= rtol * cost
-        x, r, J, cost = x_new, r_new, J_new, cost_new
-        lam = max(lam / 3, 1e-12)
-        if small or cost == 0.0:
-            converged = True
-            break
-    return LMResult(x, cost, it, converged)
+    last: dict = {}
+
+    def cost(x):
+        r, J = fun(x)
+        last["x"], last["r"], last["J"] = x, r, J
+        return float(r @ r)
+
+    def linearize(x):
+        if last.get("x") is not x:
+            cost(x)
+        J, r = last["J"], last["r"]
+        return J.T @ J, J.T @ r
+
+    def small(c_old, c_new, _delta):
+        return c_old - c_new <= rtol * c_old or c_new == 0.0
+
+    x0 = np.asarray(x0, float).copy()
+    return _levenberg_marquardt(
+        x0,
+        cost,
+        linearize,
+        converged=small,
+        feasible=feasible,
+        damping=_EXPORT_DAMPING,
+        max_iterations=max_iterations,
+    )
 
 
 def _fit(project_fn, params0, rays, uv, feasible=None, max_iterations=200) -> LMResult:

@@ -35,7 +35,7 @@ def run(args) -> int:
     from ..estimation.calibrate import calibrate
     from ..io.dataset import load_dataset
 
-    if rig.is_rig_dataset(args.dataset):  # dataset@2: the rig path (gtsam_sphere/rig.py)
+    if rig.is_rig_dataset(args.dataset):  # dataset@2: the rig path (estimation/rig.py)
         return rig.run_cli(args, options_from_args(args), None if args.quiet else stderr_progress)
     if args.camera_model:
         raise OptionsError("--camera-model applies to a rig (dataset@2); use --model")
