@@ -34,6 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .geometry import fit_rigid
+from .least_squares import Damping, levenberg_marquardt, ridge_scaling
 from .lie import skew, so3_exp
 from .robust import Loss, robust_weight
 
@@ -337,6 +338,10 @@ def _sample_triplets(rng: np.random.Generator, n: int, k: int) -> np.ndarray:
     return np.stack([i0, i1, i2], axis=1)
 
 
+#: damping of the pose refinement: 6 tries per iteration, equal cost accepted
+_REFINE_DAMPING = Damping(floor=1e-9, max_tries=6, accept_equal=True, scaling=ridge_scaling)
+
+
 def _refine_pose(
     bearings: np.ndarray,
     points: np.ndarray,
@@ -350,17 +355,17 @@ def _refine_pose(
     The rotation is updated on the left, ``R <- exp([w]) R``, the translation additively.
     Residuals get Huber weights with knee ``huber_rad``.
     """
-    lam = 1e-3
 
-    def cost_of(R_, t_):
+    def cost(pose):
+        R_, t_ = pose
         p = points @ R_.T + t_
         r = p / np.linalg.norm(p, axis=1, keepdims=True) - bearings
         e = np.linalg.norm(r, axis=1)
         return np.sum(robust_weight(e, Loss.HUBER, huber_rad)[1])
 
-    cost = cost_of(R, t)
-    for _ in range(n_iter):
-        p = points @ R.T + t
+    def linearize(pose):
+        R_, t_ = pose
+        p = points @ R_.T + t_
         nrm = np.linalg.norm(p, axis=1)
         ph = p / nrm[:, None]
         r = ph - bearings
@@ -368,29 +373,24 @@ def _refine_pose(
         w, _ = robust_weight(e, Loss.HUBER, huber_rad)
         # d(ph)/dp = (I - ph ph^T)/|p| ; dp/dw = -[R X]x ; dp/dt = I
         proj = (np.eye(3)[None] - ph[:, :, None] * ph[:, None, :]) / nrm[:, None, None]
-        rx = p - t
+        rx = p - t_
         jac = np.concatenate([proj @ -skew(rx), proj], axis=2)  # (N, 3, 6)
         jw = jac * w[:, None, None]
-        h = np.einsum("nki,nkj->ij", jw, jac)
-        g = np.einsum("nki,nk->i", jw, r)
-        improved = False
-        for _ in range(6):
-            try:
-                delta = -np.linalg.solve(h + lam * np.diag(np.diag(h) + 1e-12), g)
-            except np.linalg.LinAlgError:
-                lam *= 10
-                continue
-            R_new = so3_exp(delta[:3]) @ R
-            t_new = t + delta[3:]
-            c_new = cost_of(R_new, t_new)
-            if np.isfinite(c_new) and c_new <= cost:
-                R, t, cost = R_new, t_new, c_new
-                lam = max(lam / 10, 1e-9)
-                improved = True
-                break
-            lam *= 10
-        if not improved or np.linalg.norm(delta) < 1e-12:
-            break
+        return np.einsum("nki,nkj->ij", jw, jac), np.einsum("nki,nk->i", jw, r)
+
+    def retract(pose, delta):
+        return so3_exp(delta[:3]) @ pose[0], pose[1] + delta[3:]
+
+    fit = levenberg_marquardt(
+        (R, t),
+        cost,
+        linearize,
+        retract=retract,
+        converged=lambda _c0, _c1, delta: np.linalg.norm(delta) < 1e-12,
+        damping=_REFINE_DAMPING,
+        max_iterations=n_iter,
+    )
+    R, t = fit.x
     # re-orthonormalise
     u, _, vt = np.linalg.svd(R)
     return u @ vt, t
