@@ -33,7 +33,7 @@ __all__ = ["Damping", "LMResult", "LMStatus", "levenberg_marquardt"]
 class LMStatus(StrEnum):
     """How a :func:`levenberg_marquardt` run ended."""
 
-    #: the convergence test passed after an accepted step
+    #: the convergence test passed after an accepted step (or the next step was negligible)
     CONVERGED = "converged"
     #: no step lowered the cost (the damping ran out of tries or past its ceiling)
     STALLED = "stalled"
@@ -131,6 +131,7 @@ def levenberg_marquardt(
     *,
     retract: Callable[[Any, np.ndarray], Any] = _add,
     converged: Callable[[float, float, np.ndarray], bool] | None = None,
+    negligible: Callable[[np.ndarray, np.ndarray, float], bool] | None = None,
     feasible: Callable[[Any], bool] | None = None,
     damping: Damping = Damping(),
     max_iterations: int = 100,
@@ -157,6 +158,10 @@ def levenberg_marquardt(
     converged : callable, optional
         ``converged(cost_before, cost_after, delta) -> bool``, asked after each
         accepted step; default: never (run to ``max_iterations`` or a stall).
+    negligible : callable, optional
+        ``negligible(delta, g, cost) -> bool``, asked of each solved step before it is
+        tried: True ends the run as converged without taking it (e.g. a predicted
+        decrease ``-delta @ g`` below a fraction of the cost).
     feasible : callable, optional
         ``feasible(x') -> bool``: an infeasible trial point is rejected like a worse one.
     damping : Damping
@@ -178,7 +183,7 @@ def levenberg_marquardt(
         iterations += 1
         H, g = linearize(x)
         s = damping.scaling(H)
-        accepted = False
+        accepted = stop_here = False
         tries = 0
         while lam < damping.ceiling and (damping.max_tries is None or tries < damping.max_tries):
             tries += 1
@@ -187,6 +192,9 @@ def levenberg_marquardt(
             except np.linalg.LinAlgError:
                 lam *= damping.increase_singular
                 continue
+            if negligible is not None and negligible(delta, g, c):
+                stop_here = True
+                break
             x_new = retract(x, delta)
             if feasible is None or feasible(x_new):
                 c_new = float(cost(x_new))
@@ -196,7 +204,7 @@ def levenberg_marquardt(
                     break
             lam *= damping.increase
         if not accepted:
-            status = LMStatus.STALLED
+            status = LMStatus.CONVERGED if stop_here else LMStatus.STALLED
             break
         c_old = c
         x, c = x_new, c_new
