@@ -37,3 +37,17 @@ def test_log_inverts_exp_including_tiny_angles_and_pi():
     back = so3_log(so3_exp(w_pi))
     assert np.isclose(np.linalg.norm(back), np.pi)
     assert np.allclose(so3_exp(back), so3_exp(w_pi), atol=1e-12)
+
+
+def test_nearest_rotation_and_rotation_angle():
+    from gtsam_sphere.core.lie import nearest_rotation, rotation_angle
+
+    w = _vectors(20, seed=3)
+    R = so3_exp_batch(w)
+    noisy = R + 1e-6 * np.random.default_rng(4).normal(size=R.shape)
+    fixed = np.stack([nearest_rotation(m) for m in noisy])
+    assert np.allclose(fixed @ fixed.transpose(0, 2, 1), np.eye(3), atol=1e-14)
+    assert np.allclose(fixed, R, atol=1e-5)
+    assert np.allclose(rotation_angle(R), np.linalg.norm(w, axis=1), atol=1e-12)
+    # a reflection's nearest rotation has det +1
+    assert np.isclose(np.linalg.det(nearest_rotation(np.diag([1.0, 1.0, -1.0]))), 1.0)

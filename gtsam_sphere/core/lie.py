@@ -13,7 +13,15 @@ import math
 
 import numpy as np
 
-__all__ = ["skew", "so3_exp", "so3_exp_batch", "so3_log", "so3_log_batch"]
+__all__ = [
+    "nearest_rotation",
+    "rotation_angle",
+    "skew",
+    "so3_exp",
+    "so3_exp_batch",
+    "so3_log",
+    "so3_log_batch",
+]
 
 #: below this angle (rad) the exponential is its first-order expansion ``I + [w]x``
 SMALL_ANGLE = 1e-12
@@ -133,3 +141,45 @@ def so3_log(R: np.ndarray) -> np.ndarray:
     ndarray, shape (3,)
     """
     return so3_log_batch(np.asarray(R, float)[None])[0]
+
+
+def rotation_angle(R: np.ndarray) -> np.ndarray:
+    """Rotation angle(s) in radians, accurate near 0 and pi.
+
+    Parameters
+    ----------
+    R : ndarray, shape (3, 3) or (n, 3, 3)
+
+    Returns
+    -------
+    float or ndarray, shape (n,)
+        ``atan2(|axis * sin|, cos)`` from the skew and trace parts.
+    """
+    R = np.asarray(R, float)
+    w = np.stack(
+        [
+            R[..., 2, 1] - R[..., 1, 2],
+            R[..., 0, 2] - R[..., 2, 0],
+            R[..., 1, 0] - R[..., 0, 1],
+        ],
+        axis=-1,
+    )
+    cos = (np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0
+    return np.arctan2(0.5 * np.linalg.norm(w, axis=-1), cos)
+
+
+def nearest_rotation(M: np.ndarray) -> np.ndarray:
+    """The rotation nearest to ``M`` (3, 3) in the Frobenius norm (SVD), det +1.
+
+    Parameters
+    ----------
+    M : ndarray, shape (3, 3)
+
+    Returns
+    -------
+    ndarray, shape (3, 3)
+        ``U diag(1, 1, sign det(U V^T)) V^T`` of ``M = U S V^T``.
+    """
+    U, _, Vt = np.linalg.svd(M)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt)) or 1.0])
+    return U @ D @ Vt

@@ -35,7 +35,7 @@ import numpy as np
 
 from .geometry import fit_rigid
 from .least_squares import Damping, levenberg_marquardt, ridge_scaling
-from .lie import skew, so3_exp
+from .lie import nearest_rotation, skew, so3_exp
 from .robust import Loss, robust_weight
 
 __all__ = ["PoseResult", "angular_errors_rad", "p3p", "ransac_pose"]
@@ -391,9 +391,7 @@ def _refine_pose(
         max_iterations=n_iter,
     )
     R, t = fit.x
-    # re-orthonormalise
-    u, _, vt = np.linalg.svd(R)
-    return u @ vt, t
+    return nearest_rotation(R), t  # re-orthonormalised
 
 
 def ransac_pose(

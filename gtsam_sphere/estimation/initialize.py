@@ -563,7 +563,7 @@ def _joint_refine(problem, images, hyp, rot, trans, mask, thr_px):
     """
     from scipy.optimize import least_squares
 
-    from ..core.lie import so3_exp
+    from ..core.lie import nearest_rotation, so3_exp
 
     posed = [i for i in images if np.all(np.isfinite(rot[i]))]
     rows = [problem.obs_of_image[i][mask[problem.obs_of_image[i]]] for i in posed]
@@ -628,8 +628,7 @@ def _joint_refine(problem, images, hyp, rot, trans, mask, thr_px):
     R, t = poses(sol.x)
     rot, trans = rot.copy(), trans.copy()
     for k, i in enumerate(posed):
-        u, _, vt = np.linalg.svd(R[k])
-        rot[i], trans[i] = u @ vt, t[k]
+        rot[i], trans[i] = nearest_rotation(R[k]), t[k]
     return new, rot, trans
 
 
