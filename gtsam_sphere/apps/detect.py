@@ -79,7 +79,7 @@ import numpy as np
 
 from ..core.errors import DatasetError, InputError, OptionsError
 from ..core.least_squares import Damping, levenberg_marquardt
-from ..core.robust import Loss, robust_weight
+from ..core.robust import Loss, mad_sigma, robust_weight
 
 __all__ = [
     "BoardSpec",
@@ -913,7 +913,7 @@ def _fit_aruco_marker(
         if stage == 0:
             wts = np.ones_like(res)
         else:  # Huber weights at 2.5 robust sigma of the first stage's residuals
-            scale = max(1.4826 * float(np.median(np.abs(res - np.median(res)))), 0.5)
+            scale = max(mad_sigma(res), 0.5)
             wts, _ = robust_weight(np.abs(res), Loss.HUBER, 2.5 * scale)
         theta, pred = _fit_marker_stage(model, p, obs, wts, free, theta, pred, jac, max_iterations)
         res = obs - pred

@@ -20,7 +20,9 @@ from ._compat import StrEnum
 __all__ = [
     "MEDIAN_NORM_2D",
     "MEDIAN_NORM_3D",
+    "MAD_TO_SIGMA",
     "Loss",
+    "mad_sigma",
     "robust_sigma_px",
     "robust_weight",
     "whitening_scale",
@@ -31,6 +33,8 @@ MEDIAN_NORM_2D = float(np.sqrt(2.0 * np.log(2.0)))
 #: median of the norm of a 3-D standard normal vector: turns a median deviation into a
 #: per-axis standard deviation
 MEDIAN_NORM_3D = 1.5382
+#: the median absolute deviation of a 1-D normal is this fraction of its sigma, inverted
+MAD_TO_SIGMA = 1.4826
 
 
 class Loss(StrEnum):
@@ -100,3 +104,19 @@ def whitening_scale(r: np.ndarray, rho: np.ndarray) -> np.ndarray:
     """
     with np.errstate(invalid="ignore", divide="ignore"):
         return np.where(r > 0, np.sqrt(2.0 * rho) / r, 1.0)
+
+
+def mad_sigma(values: np.ndarray) -> float:
+    """Robust sigma of 1-D values, ``1.4826 * median(|x - median(x)|)``.
+
+    Parameters
+    ----------
+    values : ndarray, shape (N,)
+        Finite values (a NaN gives NaN).
+
+    Returns
+    -------
+    float
+    """
+    v = np.asarray(values, float)
+    return MAD_TO_SIGMA * float(np.median(np.abs(v - np.median(v))))

@@ -23,7 +23,7 @@ from ..core.camera import (
     radial_terms,
 )
 from ..core.geometry import fit_similarity, incidence_deg
-from ..core.robust import Loss, robust_sigma_px, robust_weight
+from ..core.robust import MAD_TO_SIGMA, Loss, robust_sigma_px, robust_weight
 from ..io.calibration import Calibration
 from ..io.dataset import Dataset
 from .diagnose import check_geometry, raise_if_degenerate
@@ -447,7 +447,7 @@ def initial_radial(
         sw = np.sqrt(w)
         x = np.linalg.lstsq(A * sw[:, None], b * sw, rcond=None)[0]
         res = np.abs(A @ x - b)
-        k = 2.0 * 1.4826 * max(float(np.median(res)), 1e-9)
+        k = 2.0 * MAD_TO_SIGMA * max(float(np.median(res)), 1e-9)
         w, _ = robust_weight(res, Loss.HUBER, k)
     if not np.all(np.isfinite(x)) or x[0] <= 0:
         return fallback
