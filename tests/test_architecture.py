@@ -21,10 +21,11 @@ FOLDERS: dict[str, int] = {
     "analysis": 3,  # evaluate, uncertainty, compare
     "apps": 4,  # report, export, undistort, detect
     "simulate": 4,  # the simulator (calibrates its oracle) ...
+    "cli": 5,  # the command line: one module per subcommand
 }
 # ... whose lens models and scenes are plain numpy, usable from the core
 SIMULATOR_CORE = {"simulate.lenses": 0, "simulate.scenes": 0}
-TOP = {"cli": 5, "__main__": 5, "": 5}  # the command line and the package's front door
+TOP = {"__main__": 5, "": 5}  # the package's front door
 
 
 def layer_of(name: str) -> int:
@@ -36,17 +37,9 @@ def layer_of(name: str) -> int:
     return FOLDERS[name.split(".")[0]]
 
 
-KNOWN_UPWARD = {
-    ("io.calibration", "estimation.correct"),  # load_calibration rebuilds the kNN correction
-    ("io.calibration", "estimation.external"),
-    ("analysis.uncertainty", "apps.export"),  # ray helpers live in export
-}
+KNOWN_UPWARD: set[tuple[str, str]] = set()
 
-KNOWN_CYCLES = [
-    # the kNN loop (correct) calls the adjustment (calibrate) and is called by it, and
-    # load_calibration (calibration) rebuilds the kNN correction: all inside functions
-    {"io.calibration", "estimation.calibrate", "estimation.correct"},
-]
+KNOWN_CYCLES: list[set[str]] = []
 
 
 def _modules() -> dict[str, Path]:

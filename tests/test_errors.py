@@ -79,7 +79,7 @@ def raising_command(monkeypatch, tmp_path):
         def command(args):
             raise exc
 
-        monkeypatch.setattr(cli, "cmd_evaluate", command)
+        monkeypatch.setattr(cli.evaluate, "run", command)
         return cli.main(["evaluate", str(tmp_path / "c.json"), str(tmp_path / "cp.json")])
 
     return run

@@ -17,7 +17,6 @@ from gtsam_sphere.apps.export import (
     export_camera,
     incidence_deg,
     kb_project,
-    pixel_hemisphere,
     pixel_rays,
     project_rays,
     rational_project,
@@ -185,7 +184,7 @@ def test_kalibr_yaml_files(cam, obs75, tmp_path):
 
 def test_project_rays_handles_the_back_half_past_a_fold(cam):
     obs = observed_pixels(cam, 100.0, seed=4)
-    hemi = pixel_hemisphere(cam, obs)
+    hemi = cam.pixel_hemisphere(obs)
     rays = pixel_rays(cam, obs, hemi)
     ok = np.all(np.isfinite(rays), axis=1)
     inc = incidence_deg(rays[ok])

@@ -13,7 +13,7 @@ Sigma_uv)``: the RMS length (px) of the 2-D projection error, the same
 definition as ``rms_px``.
 
 A learned kNN correction (``camera.correction`` with the fitted attributes
-of :class:`~gtsam_sphere.estimation.correct.KNNCorrection`) adds a local term: the
+of :class:`~gtsam_sphere.core.correction_model.KNNCorrection`) adds a local term: the
 correction at a pixel is the mean of its ``k`` neighbours' training
 corrections, so its standard error is the spread of those corrections about
 the prediction divided by ``sqrt(k)``:
@@ -98,6 +98,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..core.camera import BROWN_TERMS
+from ..core.lie import skew
+from ..core.rays import pixel_rays, project_rays
 from ..io.dataset import DatasetError
 
 # names of the base intrinsics -> SphereCamera attribute
@@ -271,8 +273,6 @@ def projection_jacobian(
         px per unit of each parameter; NaN where a perturbed camera has no
         pixel for the ray.
     """
-    from ..apps.export import project_rays
-
     rays = np.asarray(rays, float).reshape(-1, 3)
     J = np.zeros((len(rays), 2, len(names)))
     for k, (name, h) in enumerate(zip(names, steps)):
@@ -312,8 +312,6 @@ def ray_jacobian(
         ray itself has no effect (``A @ ray = 0`` to first order). NaN where a
         moved ray has no pixel.
     """
-    from ..apps.export import project_rays
-
     rays = np.asarray(rays, float).reshape(-1, 3)
     h = float(step_rad) if step_rad is not None else 0.5 / max(abs(float(camera.c)), 1e-9)
     A = np.zeros((len(rays), 2, 3))
@@ -373,11 +371,7 @@ def motion_jacobian(
 
 def _rotation_columns(A: np.ndarray, rays: np.ndarray) -> np.ndarray:
     """``d uv / d omega = A (-[ray]x)`` (N, 2, 3) from the ray Jacobian ``A`` (N, 2, 3)."""
-    skew = np.zeros((len(rays), 3, 3))
-    x, y, z = rays[:, 0], rays[:, 1], rays[:, 2]
-    skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -z, y, -x
-    skew[:, 1, 0], skew[:, 2, 0], skew[:, 2, 1] = z, -y, x
-    return -np.einsum("nij,njk->nik", A, skew)
+    return -np.einsum("nij,njk->nik", A, skew(rays))
 
 
 def _positive_range(value, name: str) -> float:
@@ -507,7 +501,7 @@ def knn_sigma_px(correction, uv_px: np.ndarray) -> np.ndarray | None:
     ``sqrt(sum_j |y_j - y_hat|^2 / (k - 1)) / sqrt(k)`` over the ``k``
     training neighbours ``j`` (``y`` their training corrections, ``y_hat``
     the prediction, the uniform mean). ``None`` when ``correction`` is not a
-    fitted :class:`~gtsam_sphere.estimation.correct.KNNCorrection` (no training set).
+    fitted :class:`~gtsam_sphere.core.correction_model.KNNCorrection` (no training set).
     For a local-linear model (``degree_ == 1``, the pure sphere mapping) this
     is the plain average's figure, an approximation: the spread then holds the
     field's local gradient (too large) and the plane's leverage at the border
@@ -689,8 +683,6 @@ def uncertainty_map(
         not finite and positive or given without compensation, or no
         observation falls on a cell with a ray.
     """
-    from ..apps.export import pixel_rays
-
     cov = np.asarray(covariance, float)
     names = list(names)
     if cov.shape != (len(names), len(names)):

@@ -78,6 +78,8 @@ import cv2
 import numpy as np
 
 from ..core.errors import DatasetError, InputError, OptionsError
+from ..core.least_squares import Damping, levenberg_marquardt
+from ..core.robust import Loss, mad_sigma, robust_weight
 
 __all__ = [
     "BoardSpec",
@@ -630,6 +632,70 @@ def _cell_occupancy(
     return out
 
 
+#: damping of the marker fit: x4 on a worse step, /3 on a better one, up to 1e8
+_MARKER_DAMPING = Damping(
+    initial=1e-3,
+    increase=4.0,
+    increase_singular=10.0,
+    decrease=3.0,
+    floor=1e-9,
+    ceiling=1e8,
+    accept_equal=True,
+)
+
+
+def _fit_marker_stage(model, p, obs, wts, free, theta, pred, jac, max_iterations):
+    """One weighted Levenberg-Marquardt stage of :func:`_fit_aruco_marker`.
+
+    Minimises ``sum(wts * (obs - model(p, theta))^2)`` over the ``free`` parameters
+    from ``theta`` (``pred, jac = model(p, theta)`` given), by
+    :func:`gtsam_sphere.core.least_squares.levenberg_marquardt`. Stops when a step's
+    predicted decrease is below 1e-6 of the cost, an accepted one lowers the cost by
+    at most 1e-8 of it, or moves no geometric parameter by 1e-6 or more.
+
+    Returns ``(theta, pred)``: the parameters reached and the model's values there.
+    """
+    # the model gives values and Jacobian together: the trial's are the next linearisation's
+    last = {"x": theta, "pred": pred, "jac": jac}
+    here = dict(last)
+
+    def full(delta):
+        step = np.zeros(len(theta))
+        step[free] = delta
+        return step
+
+    def cost(x):
+        pred_x, jac_x = model(p, x)
+        last.update(x=x, pred=pred_x, jac=jac_x)
+        res = obs - pred_x
+        return float(np.sum(wts * res * res))
+
+    def linearize(x):
+        if last["x"] is not x:
+            cost(x)
+        here.update(last)
+        jw = last["jac"][:, free] * wts[:, None]
+        res = obs - last["pred"]
+        return np.einsum("ni,nj->ij", jw, last["jac"][:, free]), -np.einsum("ni,n->i", jw, res)
+
+    def small(c_old, c_new, delta):
+        return not (c_old - c_new > 1e-8 * c_old) or np.max(np.abs(full(delta)[:20])) < 1e-6
+
+    res0 = obs - pred
+    fit = levenberg_marquardt(
+        theta,
+        cost,
+        linearize,
+        retract=lambda x, delta: x + full(delta),
+        converged=small,
+        negligible=lambda delta, g, c: delta @ -g < 1e-6 * c,
+        damping=_MARKER_DAMPING,
+        max_iterations=max_iterations,
+        cost0=float(np.sum(wts * res0 * res0)),
+    )
+    return fit.x, (last["pred"] if last["x"] is fit.x else here["pred"])
+
+
 def _fit_aruco_marker(
     image: np.ndarray,
     quad: np.ndarray,
@@ -847,39 +913,10 @@ def _fit_aruco_marker(
         if stage == 0:
             wts = np.ones_like(res)
         else:  # Huber weights at 2.5 robust sigma of the first stage's residuals
-            scale = max(1.4826 * float(np.median(np.abs(res - np.median(res)))), 0.5)
-            wts = np.minimum(1.0, 2.5 * scale / np.maximum(np.abs(res), 1e-12))
-        cost = float(np.sum(wts * res * res))
-        damping = 1e-3
-        for _ in range(max_iterations):
-            jw = jac[:, free] * wts[:, None]
-            normal = np.einsum("ni,nj->ij", jw, jac[:, free])
-            grad = np.einsum("ni,n->i", jw, res)
-            diag = np.diag(normal).copy()
-            diag[diag <= 0] = 1.0
-            accepted = False
-            step = np.zeros(n_par)
-            while damping < 1e8:
-                try:
-                    step[free] = np.linalg.solve(normal + np.diag(damping * diag), grad)
-                except np.linalg.LinAlgError:
-                    damping *= 10.0
-                    continue
-                if step[free] @ grad < 1e-6 * cost:
-                    break  # converged: the linearised decrease is negligible
-                trial = theta + step
-                pred_t, jac_t = model(p, trial)
-                res_t = obs - pred_t
-                cost_t = float(np.sum(wts * res_t * res_t))
-                if np.isfinite(cost_t) and cost_t <= cost:
-                    theta, jac, res = trial, jac_t, res_t
-                    accepted = cost - cost_t > 1e-8 * cost
-                    cost = cost_t
-                    damping = max(damping / 3.0, 1e-9)
-                    break
-                damping *= 4.0
-            if not accepted or np.max(np.abs(step[:20])) < 1e-6:
-                break
+            scale = max(mad_sigma(res), 0.5)
+            wts, _ = robust_weight(np.abs(res), Loss.HUBER, 2.5 * scale)
+        theta, pred = _fit_marker_stage(model, p, obs, wts, free, theta, pred, jac, max_iterations)
+        res = obs - pred
     if not np.all(np.isfinite(theta)):
         return None
     contrast = theta[24]

@@ -41,8 +41,8 @@ convex hull (``region="hull"``, the default) or the disc around the
 principal point through the farthest one (``"radius"``); without them, or
 with ``"image"``, the whole image where the camera has a ray. The region is
 sampled on a regular pixel grid (about ``n_samples`` pixels), each pixel
-unprojected to its ray (:func:`pixel_hemisphere` says which half of the
-image sphere a pixel lies on).
+unprojected to its ray (the camera's ``pixel_hemisphere`` says which half of
+the image sphere a pixel lies on; :mod:`gtsam_sphere.core.rays`).
 
 Files: ``opencv-*`` write JSON (``format: "gtsam-sphere/export-opencv@1"``:
 ``image_size = [width, height]``, ``K``, ``D`` or ``dist``, ``fit``),
@@ -63,6 +63,13 @@ from pathlib import Path
 
 import numpy as np
 
+# the ray helpers live in the core; re-exported here for the export's callers
+from ..core.geometry import incidence_deg as incidence_deg
+from ..core.least_squares import Damping, LMResult
+from ..core.least_squares import levenberg_marquardt as _levenberg_marquardt
+from ..core.rays import RayGrid as RayGrid
+from ..core.rays import pixel_rays as pixel_rays
+from ..core.rays import project_rays as project_rays
 from ..io.dataset import DatasetError, write_bytes_atomic, write_json_atomic
 
 logger = logging.getLogger(__name__)
@@ -77,217 +84,6 @@ RATIONAL_MAX_INCIDENCE_DEG = 80.0
 _KB_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "k3", "k4")
 _RATIONAL_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
 _DS_NAMES = ("xi", "alpha", "fx", "fy", "cx", "cy")
-
-
-# --------------------------------------------------------------------------- rays of pixels
-
-
-def pixel_hemisphere(camera, uv_px: np.ndarray, step_px: float = 1.0) -> np.ndarray:
-    """Which half of the image sphere each pixel lies on: ``+1`` front, ``-1`` back.
-
-    With the sphere mapping a pixel's ideal point ``c * P[:2] / |P|`` is the
-    same for a ray at incidence ``alpha`` and ``180 - alpha``. A lens seeing
-    past 90 deg is represented by measurement corrections that fold the
-    image: beyond the fold the raw image radius keeps growing while the ideal
-    radius ``c sin(alpha)`` shrinks, so the map ``uv -> ideal`` reverses
-    orientation. A pixel is on the back half where that map's Jacobian
-    determinant (central differences, ``step_px``) is negative, on the front
-    half elsewhere (the documented default of ``unproject``). A camera with
-    a radial mapping (``camera.radial`` not ``None``) is one-to-one past
-    90 deg by itself: all ``+1``.
-
-    Parameters
-    ----------
-    camera : SphereCamera
-    uv_px : ndarray, shape (N, 2)
-        Raw pixels (OpenCV convention).
-    step_px : float
-        Finite-difference step (px).
-
-    Returns
-    -------
-    hemisphere : ndarray, shape (N,)
-        ``+1.0`` or ``-1.0``.
-    """
-    uv = np.asarray(uv_px, float).reshape(-1, 2)
-    h = np.ones(len(uv))
-    if getattr(camera, "radial", None) is not None:
-        return h
-    if not getattr(camera, "brown", None) and getattr(camera, "correction", None) is None:
-        return h
-    if len(uv) == 0:
-        return h
-    ex = np.array([step_px, 0.0])
-    ey = np.array([0.0, step_px])
-    dx = camera.ideal_from_pixels(uv + ex) - camera.ideal_from_pixels(uv - ex)
-    dy = camera.ideal_from_pixels(uv + ey) - camera.ideal_from_pixels(uv - ey)
-    det = dx[:, 0] * dy[:, 1] - dx[:, 1] * dy[:, 0]
-    h[det < 0] = -1.0
-    return h
-
-
-def pixel_rays(camera, uv_px: np.ndarray, hemisphere: np.ndarray | None = None) -> np.ndarray:
-    """Unit rays (camera frame) of raw pixels, each on its own half of the image sphere.
-
-    Parameters
-    ----------
-    camera : SphereCamera
-    uv_px : ndarray, shape (N, 2)
-        Raw pixels (OpenCV convention).
-    hemisphere : ndarray, shape (N,), optional
-        ``+1`` / ``-1`` per pixel; default :func:`pixel_hemisphere`.
-
-    Returns
-    -------
-    rays : ndarray, shape (N, 3)
-        Unit vectors, x right, y down, z forward; NaN where the camera has no
-        ray.
-    """
-    uv = np.asarray(uv_px, float).reshape(-1, 2)
-    if len(uv) == 0:
-        return np.zeros((0, 3))
-    if hemisphere is None:
-        hemisphere = pixel_hemisphere(camera, uv)
-    return np.asarray(camera.unproject(uv, hemisphere=hemisphere), float).reshape(-1, 3)
-
-
-def _angle_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Angle (rad) between rows of two (N, 3) arrays; NaN where either is not finite."""
-    with np.errstate(invalid="ignore", divide="ignore"):
-        cross = np.linalg.norm(np.cross(a, b), axis=1)
-        return np.arctan2(cross, np.sum(a * b, axis=1))
-
-
-class RayGrid:
-    """Rays of a regular pixel grid over a camera's image, with a nearest-ray index.
-
-    Parameters
-    ----------
-    camera : SphereCamera
-    n_cols : int
-        Grid columns (rows follow the aspect ratio).
-
-    Attributes
-    ----------
-    uv_px : ndarray, shape (G, 2)
-        Grid pixels that have a ray.
-    rays : ndarray, shape (G, 3)
-        Their unit rays (:func:`pixel_rays`).
-    step_px : float
-        Grid spacing (px).
-    max_incidence_deg : float
-        Widest ray of the grid.
-    """
-
-    def __init__(self, camera, n_cols: int = 160):
-        from sklearn.neighbors import KDTree
-
-        self.step_px = max(camera.width, camera.height) / n_cols
-        gu = np.arange(-0.5 + self.step_px / 2, camera.width - 0.5, self.step_px)
-        gv = np.arange(-0.5 + self.step_px / 2, camera.height - 0.5, self.step_px)
-        grid = np.stack(np.meshgrid(gu, gv), -1).reshape(-1, 2)
-        grays = pixel_rays(camera, grid)
-        ok = np.all(np.isfinite(grays), axis=1)
-        self.uv_px, self.rays = grid[ok], grays[ok]
-        self.max_incidence_deg = (
-            float(np.max(incidence_deg(self.rays))) if len(self.rays) else math.nan
-        )
-        self._tree = KDTree(self.rays) if len(self.rays) else None
-        # a ray farther than a few grid steps from every grid ray is outside the image
-        self.max_angle_rad = 5.0 * self.step_px / max(abs(float(camera.c)), 1e-9)
-
-    def nearest(self, rays: np.ndarray) -> np.ndarray:
-        """Pixel (N, 2) of the nearest grid ray to each ray (N, 3); NaN when none is close."""
-        out = np.full((len(rays), 2), np.nan)
-        if self._tree is None or len(rays) == 0:
-            return out
-        norm = np.linalg.norm(rays, axis=1)
-        finite = np.isfinite(norm) & (norm > 0)
-        if not finite.any():
-            return out
-        unit = rays[finite] / norm[finite, None]
-        dist, idx = self._tree.query(unit, k=1)
-        chord = 2.0 * math.sin(min(self.max_angle_rad, math.pi) / 2)
-        near = dist[:, 0] <= chord
-        sub = np.full((len(unit), 2), np.nan)
-        sub[near] = self.uv_px[idx[near, 0]]
-        out[finite] = sub
-        return out
-
-
-def project_rays(
-    camera,
-    rays: np.ndarray,
-    seed_uv_px: np.ndarray | None = None,
-    tol_px: float = 0.05,
-    inside_image: bool = True,
-    grid: RayGrid | None = None,
-) -> np.ndarray:
-    """Raw pixels of camera-frame rays, NaN where the camera has no pixel for the ray.
-
-    The pixels of ``camera.project`` (which puts a ray behind the camera
-    beyond the fold of a lens seeing past 90 deg), each accepted when its own
-    ray (:func:`pixel_rays`) comes back to the input ray within ``tol_px /
-    c`` rad (and, with ``inside_image``, it lies in the image). Without
-    ``seed_uv_px``, rays wider than the widest ray of a :class:`RayGrid` by
-    more than 2 deg are not tried at all.
-
-    Parameters
-    ----------
-    camera : SphereCamera
-    rays : ndarray, shape (N, 3)
-        Camera frame (x right, y down, z forward); need not be unit.
-    seed_uv_px : ndarray, shape (N, 2), optional
-        Not needed any more (``camera.project`` finds the pixel on the
-        ray's side of the fold); kept for callers. Given, no grid is built
-        and every ray is tried.
-    tol_px : float
-        Round-trip tolerance in pixels at the scale ``c`` (px per rad).
-    inside_image : bool
-        Also reject pixels outside ``[-0.5, width - 0.5] x [-0.5, height - 0.5]``.
-    grid : RayGrid, optional
-        Reused between calls on the same camera; built when needed.
-
-    Returns
-    -------
-    uv_px : ndarray, shape (N, 2)
-    """
-    rays = np.asarray(rays, float).reshape(-1, 3)
-    n = len(rays)
-    uv = np.full((n, 2), np.nan)
-    if n == 0:
-        return uv
-    tol_rad = tol_px / max(abs(float(camera.c)), 1e-9)
-
-    def accepted(uv_try: np.ndarray, idx: np.ndarray) -> np.ndarray:
-        ok = np.all(np.isfinite(uv_try), axis=1)
-        if inside_image:
-            ok &= (
-                (uv_try[:, 0] >= -0.5)
-                & (uv_try[:, 0] <= camera.width - 0.5)
-                & (uv_try[:, 1] >= -0.5)
-                & (uv_try[:, 1] <= camera.height - 0.5)
-            )
-        back = np.full((len(idx), 3), np.nan)
-        if ok.any():
-            back[ok] = pixel_rays(camera, uv_try[ok])
-        ang = _angle_between(back, rays[idx])
-        return ok & (ang < tol_rad)
-
-    todo = np.flatnonzero(np.all(np.isfinite(rays), axis=1) & (np.linalg.norm(rays, axis=1) > 0))
-    if seed_uv_px is None:
-        if grid is None:
-            grid = RayGrid(camera)
-        if math.isfinite(grid.max_incidence_deg):
-            todo = todo[incidence_deg(rays[todo]) <= grid.max_incidence_deg + 2.0]
-        else:
-            todo = todo[:0]
-    if len(todo):
-        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
-            trial = np.asarray(camera.project(rays[todo]), float).reshape(-1, 2)
-        ok = accepted(trial, todo)
-        uv[todo[ok]] = trial[ok]
-    return uv
 
 
 # --------------------------------------------------------------------------- observed region
@@ -321,12 +117,6 @@ class RegionSample:
     def incidence_deg(self) -> np.ndarray:
         """Incidence angle (deg) of each sample's ray, shape (N,)."""
         return incidence_deg(self.rays)
-
-
-def incidence_deg(rays: np.ndarray) -> np.ndarray:
-    """Incidence angle ``atan2(hypot(x, y), z)`` in degrees of rays (N, 3), shape (N,)."""
-    rays = np.asarray(rays, float).reshape(-1, 3)
-    return np.degrees(np.arctan2(np.hypot(rays[:, 0], rays[:, 1]), rays[:, 2]))
 
 
 def _inside_convex(points: np.ndarray, hull: np.ndarray, tol: float = 1e-9) -> np.ndarray:
@@ -583,14 +373,10 @@ def ds_valid(params: np.ndarray, rays: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------- least squares
 
 
-@dataclass
-class LMResult:
-    """Outcome of :func:`levenberg_marquardt`."""
-
-    x: np.ndarray
-    cost: float
-    iterations: int
-    converged: bool
+#: the export's damping: Marquardt's scaling, x4 on a worse step, /3 on a better one
+_EXPORT_DAMPING = Damping(
+    initial=1e-3, increase=4.0, increase_singular=10.0, decrease=3.0, floor=1e-12, ceiling=1e16
+)
 
 
 def levenberg_marquardt(
@@ -601,6 +387,8 @@ def levenberg_marquardt(
     rtol: float = 1e-12,
 ) -> LMResult:
     """Minimise ``sum(r(x)^2)`` by Levenberg-Marquardt with Marquardt's diagonal scaling.
+
+    The loop is :func:`gtsam_sphere.core.least_squares.levenberg_marquardt`.
 
     Parameters
     ----------
@@ -619,44 +407,35 @@ def levenberg_marquardt(
     Returns
     -------
     LMResult
+        ``converged`` unless the iteration limit stopped it (a stall, no step
+        lowering the cost at this precision, counts as converged).
     """
-    x = np.asarray(x0, float).copy()
-    r, J = fun(x)
-    cost = float(r @ r)
-    lam = 1e-3
-    converged = False
-    it = 0
-    while it < max_iterations:
-        it += 1
-        g = J.T @ r
-        A = J.T @ J
-        d = np.diag(A).copy()
-        d[~(d > 0)] = 1.0
-        accepted = False
-        while lam < 1e16:
-            try:
-                step = np.linalg.solve(A + lam * np.diag(d), -g)
-            except np.linalg.LinAlgError:
-                lam *= 10
-                continue
-            x_new = x + step
-            if feasible is None or feasible(x_new):
-                r_new, J_new = fun(x_new)
-                cost_new = float(r_new @ r_new)
-                if np.isfinite(cost_new) and cost_new < cost:
-                    accepted = True
-                    break
-            lam *= 4
-        if not accepted:
-            converged = True  # no descent direction left at this precision
-            break
-        small = cost - cost_new <= rtol * cost
-        x, r, J, cost = x_new, r_new, J_new, cost_new
-        lam = max(lam / 3, 1e-12)
-        if small or cost == 0.0:
-            converged = True
-            break
-    return LMResult(x, cost, it, converged)
+    last: dict = {}
+
+    def cost(x):
+        r, J = fun(x)
+        last["x"], last["r"], last["J"] = x, r, J
+        return float(r @ r)
+
+    def linearize(x):
+        if last.get("x") is not x:
+            cost(x)
+        J, r = last["J"], last["r"]
+        return J.T @ J, J.T @ r
+
+    def small(c_old, c_new, _delta):
+        return c_old - c_new <= rtol * c_old or c_new == 0.0
+
+    x0 = np.asarray(x0, float).copy()
+    return _levenberg_marquardt(
+        x0,
+        cost,
+        linearize,
+        converged=small,
+        feasible=feasible,
+        damping=_EXPORT_DAMPING,
+        max_iterations=max_iterations,
+    )
 
 
 def _fit(project_fn, params0, rays, uv, feasible=None, max_iterations=200) -> LMResult:

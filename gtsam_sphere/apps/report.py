@@ -45,6 +45,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..core.robust import mad_sigma
 from ..io.calibration import Calibration, load_calibration
 
 #: The plot files of a report, in page order, with their captions.
@@ -189,7 +190,7 @@ def robust_limits(values: np.ndarray, k: float = 6.0, min_half_width: float = 1e
     if len(v) == 0:
         return -1.0, 1.0
     med = float(np.median(v))
-    scale = 1.4826 * float(np.median(np.abs(v - med)))
+    scale = mad_sigma(v)
     if scale == 0:
         scale = float(np.std(v))
     half = max(k * scale, min_half_width)

@@ -1,7 +1,7 @@
 """Resample a calibrated camera's image onto a standard projection with ``cv2.remap``.
 
 For every output pixel: output pixel -> ray (the output projection) -> raw
-input pixel (the calibrated camera, :func:`gtsam_sphere.apps.export.project_rays`)
+input pixel (the calibrated camera, :func:`gtsam_sphere.core.rays.project_rays`)
 -> ``map_x, map_y`` (float32, OpenCV pixel convention on both sides). The
 whole field of view the camera sees is kept where the output projection can
 hold it: ``equirectangular`` and ``cylindrical`` span any longitude range
@@ -37,8 +37,8 @@ from pathlib import Path
 import numpy as np
 
 from ..core.errors import OptionsError
+from ..core.rays import RayGrid, project_rays
 from ..io.dataset import DatasetError, write_bytes_atomic
-from .export import RayGrid, project_rays
 
 KINDS: tuple[str, ...] = ("perspective", "equirectangular", "cylindrical")
 #: map value of output pixels without a source pixel (outside any input image)

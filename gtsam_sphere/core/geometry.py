@@ -61,6 +61,45 @@ class Similarity:
         return R_new, t_new
 
 
+def _umeyama(src: np.ndarray, dst: np.ndarray):
+    """Shared core of :func:`fit_rigid` and :func:`fit_similarity`, batched over leading axes.
+
+    Returns the rotation ``R`` (..., 3, 3) (det +1) maximising ``tr(R^T cov)`` with
+    ``cov = sum_n (dst_n - mean dst)(src_n - mean src)^T``, the means (..., 3), the
+    centred ``src`` (..., N, 3), the singular values (..., 3) of ``cov`` and the sign
+    (..., ) given to the last one.
+    """
+    mu_s = src.mean(axis=-2)
+    mu_d = dst.mean(axis=-2)
+    a = src - mu_s[..., None, :]
+    cov = np.einsum("...ni,...nj->...ij", dst - mu_d[..., None, :], a)
+    u, sv, vt = np.linalg.svd(cov)
+    d = np.sign(np.linalg.det(u @ vt))
+    d = np.where(d == 0, 1.0, d)
+    u = u.copy()
+    u[..., :, 2] *= d[..., None]
+    return u @ vt, mu_s, mu_d, a, sv, d
+
+
+def fit_rigid(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares rigid transform ``dst ~= R @ src + t`` (Kabsch), batched, unchecked.
+
+    Parameters
+    ----------
+    src, dst : ndarray, shape (..., N, 3)
+        Corresponding points (no checks: the minimal solvers call this on thousands of
+        candidate sets at once, some of them placeholders).
+
+    Returns
+    -------
+    R : ndarray, shape (..., 3, 3)
+        Rotation, det +1.
+    t : ndarray, shape (..., 3)
+    """
+    R, mu_s, mu_d, _, _, _ = _umeyama(src, dst)
+    return R, mu_d - np.einsum("...ij,...j->...i", R, mu_s)
+
+
 def fit_similarity(src: np.ndarray, dst: np.ndarray, with_scale: bool = True) -> Similarity:
     """Least-squares similarity (Umeyama 1991) mapping ``src`` onto ``dst``.
 
@@ -82,35 +121,16 @@ def fit_similarity(src: np.ndarray, dst: np.ndarray, with_scale: bool = True) ->
         raise ValueError(f"src and dst shapes differ: {src.shape} vs {dst.shape}")
     if len(src) < 3:
         raise ValueError(f"need at least 3 points for a similarity, got {len(src)}")
-    mu_s, mu_d = src.mean(0), dst.mean(0)
-    a, b = src - mu_s, dst - mu_d
-    cov = b.T @ a / len(src)
-    U, S, Vt = np.linalg.svd(cov)
-    D = np.eye(3)
-    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
-        D[2, 2] = -1.0
-    R = U @ D @ Vt
-    var_s = (a**2).sum() / len(src)
-    scale = float(np.trace(np.diag(S) @ D) / var_s) if with_scale else 1.0
+    R, mu_s, mu_d, a, sv, d = _umeyama(src, dst)
+    scale = float((sv[0] + sv[1] + d * sv[2]) / (a**2).sum()) if with_scale else 1.0
     t = mu_d - scale * R @ mu_s
     return Similarity(scale, R, t)
 
 
-def skew(v: np.ndarray) -> np.ndarray:
-    """Skew-symmetric matrices of vectors: (..., 3) -> (..., 3, 3), ``skew(a) @ b = a x b``."""
-    v = np.asarray(v, float)
-    z = np.zeros(v.shape[:-1])
-    return np.stack(
-        [
-            np.stack([z, -v[..., 2], v[..., 1]], -1),
-            np.stack([v[..., 2], z, -v[..., 0]], -1),
-            np.stack([-v[..., 1], v[..., 0], z], -1),
-        ],
-        -2,
-    )
-
-
 def incidence_deg(points_cam: np.ndarray) -> np.ndarray:
-    """Angle between camera-frame points (N, 3) and the optical axis +z, degrees in [0, 180]."""
-    p = np.asarray(points_cam, float)
+    """Angle (deg, in [0, 180]) between camera-frame points or rays (N, 3) and the axis +z.
+
+    ``atan2(hypot(x, y), z)``; shape (N,).
+    """
+    p = np.asarray(points_cam, float).reshape(-1, 3)
     return np.degrees(np.arctan2(np.hypot(p[:, 0], p[:, 1]), p[:, 2]))

@@ -33,6 +33,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .geometry import fit_rigid
+from .least_squares import Damping, levenberg_marquardt, ridge_scaling
+from .lie import nearest_rotation, skew, so3_exp
+from .robust import Loss, robust_weight
+
 __all__ = ["PoseResult", "angular_errors_rad", "p3p", "ransac_pose"]
 
 _DEGENERATE_SIN = 1e-9  # |f_i x f_j| below this: duplicate bearings
@@ -98,30 +103,6 @@ def _inv3(m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return inv, det
 
 
-def _kabsch(p_cam: np.ndarray, p_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Rigid transform with ``p_cam ~ R @ p_world + t``, batched over leading axes.
-
-    Parameters
-    ----------
-    p_cam, p_world : (..., n, 3) corresponding points.
-
-    Returns
-    -------
-    R : (..., 3, 3) rotation, det +1.  t : (..., 3) translation.
-    """
-    mc = p_cam.mean(axis=-2)
-    mw = p_world.mean(axis=-2)
-    cov = np.einsum("...ni,...nj->...ij", p_cam - mc[..., None, :], p_world - mw[..., None, :])
-    u, _, vt = np.linalg.svd(cov)
-    d = np.sign(np.linalg.det(u @ vt))
-    d[d == 0] = 1.0
-    u = u.copy()
-    u[..., :, 2] *= d[..., None]
-    rot = u @ vt
-    t = mc - np.einsum("...ij,...j->...i", rot, mw)
-    return rot, t
-
-
 def _p3p_batch(
     bearings: np.ndarray, points: np.ndarray, n_polish: int = 2
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -168,7 +149,7 @@ def _p3p_batch(
         & (area2 > _DEGENERATE_AREA * np.where(longest2 > 0, longest2, 1.0))
         & (longest2 > 0)
     )
-    # normalise the scale for conditioning (restored through the Kabsch step)
+    # normalise the scale for conditioning (restored through the rigid fit)
     scale2 = np.where(ok_sample, (a2 + b2 + c2) / 3.0, 1.0)
     a2n, b2n, c2n = a2 / scale2, b2 / scale2, c2 / scale2
     ca = np.einsum("ki,ki->k", f2, f3)
@@ -228,7 +209,7 @@ def _p3p_batch(
     pw = np.broadcast_to(points[:, None], p_cam.shape)
     pw = np.where(valid[..., None, None], pw, np.eye(3))
     p_cam = np.where(valid[..., None, None], p_cam, np.eye(3))
-    rot, t = _kabsch(p_cam, pw)
+    rot, t = fit_rigid(pw, p_cam)
     return rot, t, valid
 
 
@@ -357,13 +338,8 @@ def _sample_triplets(rng: np.random.Generator, n: int, k: int) -> np.ndarray:
     return np.stack([i0, i1, i2], axis=1)
 
 
-def _so3_exp(w: np.ndarray) -> np.ndarray:
-    """Rotation matrix of a rotation vector (3,), radians."""
-    th = np.linalg.norm(w)
-    k = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
-    if th < 1e-12:
-        return np.eye(3) + k
-    return np.eye(3) + np.sin(th) / th * k + (1 - np.cos(th)) / th**2 * (k @ k)
+#: damping of the pose refinement: 6 tries per iteration, equal cost accepted
+_REFINE_DAMPING = Damping(floor=1e-9, max_tries=6, accept_equal=True, scaling=ridge_scaling)
 
 
 def _refine_pose(
@@ -379,54 +355,43 @@ def _refine_pose(
     The rotation is updated on the left, ``R <- exp([w]) R``, the translation additively.
     Residuals get Huber weights with knee ``huber_rad``.
     """
-    lam = 1e-3
 
-    def cost_of(R_, t_):
+    def cost(pose):
+        R_, t_ = pose
         p = points @ R_.T + t_
         r = p / np.linalg.norm(p, axis=1, keepdims=True) - bearings
         e = np.linalg.norm(r, axis=1)
-        return np.sum(np.where(e <= huber_rad, e * e, 2 * huber_rad * e - huber_rad**2))
+        return np.sum(robust_weight(e, Loss.HUBER, huber_rad)[1])
 
-    cost = cost_of(R, t)
-    for _ in range(n_iter):
-        p = points @ R.T + t
+    def linearize(pose):
+        R_, t_ = pose
+        p = points @ R_.T + t_
         nrm = np.linalg.norm(p, axis=1)
         ph = p / nrm[:, None]
         r = ph - bearings
         e = np.linalg.norm(r, axis=1)
-        w = np.where(e <= huber_rad, 1.0, huber_rad / np.maximum(e, 1e-300))
+        w, _ = robust_weight(e, Loss.HUBER, huber_rad)
         # d(ph)/dp = (I - ph ph^T)/|p| ; dp/dw = -[R X]x ; dp/dt = I
         proj = (np.eye(3)[None] - ph[:, :, None] * ph[:, None, :]) / nrm[:, None, None]
-        rx = p - t
-        skew = np.zeros((len(p), 3, 3))
-        skew[:, 0, 1], skew[:, 0, 2] = rx[:, 2], -rx[:, 1]
-        skew[:, 1, 0], skew[:, 1, 2] = -rx[:, 2], rx[:, 0]
-        skew[:, 2, 0], skew[:, 2, 1] = rx[:, 1], -rx[:, 0]
-        jac = np.concatenate([proj @ skew, proj], axis=2)  # (N, 3, 6)
+        rx = p - t_
+        jac = np.concatenate([proj @ -skew(rx), proj], axis=2)  # (N, 3, 6)
         jw = jac * w[:, None, None]
-        h = np.einsum("nki,nkj->ij", jw, jac)
-        g = np.einsum("nki,nk->i", jw, r)
-        improved = False
-        for _ in range(6):
-            try:
-                delta = -np.linalg.solve(h + lam * np.diag(np.diag(h) + 1e-12), g)
-            except np.linalg.LinAlgError:
-                lam *= 10
-                continue
-            R_new = _so3_exp(delta[:3]) @ R
-            t_new = t + delta[3:]
-            c_new = cost_of(R_new, t_new)
-            if np.isfinite(c_new) and c_new <= cost:
-                R, t, cost = R_new, t_new, c_new
-                lam = max(lam / 10, 1e-9)
-                improved = True
-                break
-            lam *= 10
-        if not improved or np.linalg.norm(delta) < 1e-12:
-            break
-    # re-orthonormalise
-    u, _, vt = np.linalg.svd(R)
-    return u @ vt, t
+        return np.einsum("nki,nkj->ij", jw, jac), np.einsum("nki,nk->i", jw, r)
+
+    def retract(pose, delta):
+        return so3_exp(delta[:3]) @ pose[0], pose[1] + delta[3:]
+
+    fit = levenberg_marquardt(
+        (R, t),
+        cost,
+        linearize,
+        retract=retract,
+        converged=lambda _c0, _c1, delta: np.linalg.norm(delta) < 1e-12,
+        damping=_REFINE_DAMPING,
+        max_iterations=n_iter,
+    )
+    R, t = fit.x
+    return nearest_rotation(R), t  # re-orthonormalised
 
 
 def ransac_pose(

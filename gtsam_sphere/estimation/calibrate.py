@@ -25,6 +25,7 @@ from ..core.camera import (
     radial_warp,
 )
 from ..core.geometry import fit_similarity, incidence_deg
+from ..core.robust import MAD_TO_SIGMA, Loss, robust_sigma_px, robust_weight
 from ..io.calibration import Calibration
 from ..io.dataset import Dataset
 from .diagnose import check_geometry, raise_if_degenerate
@@ -32,12 +33,9 @@ from .graph import (
     INTRINSICS_KEY,
     BundleProblem,
     Datum,
-    Loss,
     NoiseOptions,
     point_key,
     pose_key,
-    robust_sigma_px,
-    robust_weight,
 )
 from .optimize import OptimizationResult, OptimizerKind, OptimizerOptions, make_ordering, optimize
 
@@ -48,7 +46,6 @@ BROWN_DEFAULT_TERMS = ("k1", "k2", "k3", "p1", "p2")
 #: non-radial terms of the radial models unless told otherwise: decentering and affinity
 RADIAL_DEFAULT_TERMS = ("p1", "p2", "a1", "a2")
 
-# median of the norm of a 2-D standard normal vector: sqrt(2 ln 2)
 #: floor of the estimated image noise (px): no detector measures better, and below it
 #: perfect (simulated) data whitens residuals at the projection's numerical noise, so LM
 #: stalls and the covariance looks singular (seen at 1e-4 px; 0.001 px took 194 iterations)
@@ -468,8 +465,8 @@ def _fit_radial(r: np.ndarray, beta: np.ndarray, n_terms: int) -> np.ndarray:
         sw = np.sqrt(w)
         x = np.linalg.lstsq(A * sw[:, None], r * sw, rcond=None)[0]
         res = np.abs(A @ x - r)
-        k = 2.0 * 1.4826 * max(float(np.median(res)), 1e-9)
-        w = np.where(res <= k, 1.0, k / np.maximum(res, 1e-300))
+        k = 2.0 * MAD_TO_SIGMA * max(float(np.median(res)), 1e-9)
+        w, _ = robust_weight(res, Loss.HUBER, k)
     if not np.all(np.isfinite(x)) or x[0] <= 0:
         return fallback
     return np.concatenate([[x[0]], x[1:] / x[0]])
@@ -717,7 +714,7 @@ def _calibrate_once(
     if options.model.uses_knn:
         from .correct import grey_box_loop
 
-        adj, correction, history = grey_box_loop(problem, adj, opt, options, say)
+        adj, correction, history = grey_box_loop(problem, adj, opt, options, say, adjust)
 
     cov_theta = None
     if options.covariance and problem.fixed_intrinsics is None:

@@ -67,8 +67,10 @@ import gtsam
 import numpy as np
 
 from ..core.camera import SphereCamera, check_uv
-from ..core.geometry import skew
-from .graph import Loss, robust_weight
+from ..core.lie import skew
+from ..core.rays import bearings as bearings  # re-exported: its home is the core
+from ..core.rays import camera_of
+from ..core.robust import Loss, robust_weight, whitening_scale
 
 __all__ = [
     "ProjectionBlocks",
@@ -81,16 +83,6 @@ __all__ = [
     "make_projection_factor",
     "model_scale_px_per_rad",
 ]
-
-
-def _camera(calibration_or_camera) -> SphereCamera:
-    """The :class:`SphereCamera` of a ``Calibration`` (``.camera``) or the camera itself."""
-    cam = getattr(calibration_or_camera, "camera", calibration_or_camera)
-    if not isinstance(cam, SphereCamera):
-        raise TypeError(
-            f"expected a Calibration or a SphereCamera, got {type(calibration_or_camera).__name__}"
-        )
-    return cam
 
 
 def _keys(keys, n: int, name: str) -> np.ndarray:
@@ -151,7 +143,7 @@ class _Whitener:
 
     def _parameter(self, loss: Loss) -> float | None:
         """Read the estimator's threshold back from its functions; None if they disagree
-        with :func:`gtsam_sphere.estimation.graph.robust_weight` (then it is called per
+        with :func:`gtsam_sphere.core.robust.robust_weight` (then it is called per
         observation)."""
         m, big = self.mest, 1e6
         if loss is Loss.HUBER:
@@ -231,7 +223,7 @@ def make_projection_factor(
         of ``world_from_cam * Exp(xi)``) and 2x3. Keep no other reference:
         the factor holds its callback.
     """
-    camera = _camera(calibration_or_camera)
+    camera = camera_of(calibration_or_camera)
     uv = check_uv(uv_px)
     if len(uv) != 1:
         raise ValueError(f"make_projection_factor takes one pixel, got {len(uv)}")
@@ -336,7 +328,7 @@ class ProjectionBlocks:
     ):
         import threading
 
-        self.camera = _camera(calibration_or_camera)
+        self.camera = camera_of(calibration_or_camera)
         uv = check_uv(uv_px)
         n = len(uv)
         if n == 0:
@@ -526,15 +518,13 @@ class ProjectionBlocks:
             e = _frozen_residual(self.camera, self._ideal[rows], R, t, p, False) @ S.T
             r = np.sqrt((e * e).sum(1))
             _, rho = self.whitener.weights(r)
-            with np.errstate(invalid="ignore", divide="ignore"):
-                scale = np.where(r > 0, np.sqrt(2.0 * rho) / r, 1.0)
+            scale = whitening_scale(r, rho)
             return e * scale[:, None], None, None, None
         e, J, pc = _frozen_residual(self.camera, self._ideal[rows], R, t, p, True)
         e = e @ S.T
         r = np.sqrt((e * e).sum(1))
         w, rho = self.whitener.weights(r)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            scale = np.where(r > 0, np.sqrt(2.0 * rho) / r, 1.0)
+        scale = whitening_scale(r, rho)
         sw = np.sqrt(w)
         if S[0, 1] == 0.0 and S[1, 0] == 0.0 and S[0, 0] == S[1, 1]:  # isotropic: S = s I
             J = J * S[0, 0]  # the einsum's numbers (but the sign of a zero), 30x faster
@@ -866,33 +856,6 @@ def make_projection_block(
 # --------------------------------------------------------------------------- bearing path
 
 
-def bearings(calibration_or_camera, uv_px: np.ndarray, hemisphere=1.0) -> np.ndarray:
-    """Unit rays of raw pixels in the camera frame (measurement corrections included).
-
-    Parameters
-    ----------
-    calibration_or_camera : Calibration or SphereCamera
-    uv_px : array_like, shape (N, 2)
-        Raw measured pixels.
-    hemisphere : float or array_like, shape (N,)
-        "sphere" mapping only: ``+1`` front half (incidence below 90 deg),
-        ``-1`` back half; the mapping is two-to-one past 90 deg. The "radial"
-        mapping is one-to-one up to ``camera.max_alpha_rad()`` and ignores it.
-
-    Returns
-    -------
-    rays : ndarray, shape (N, 3)
-        Unit vectors, camera frame (x right, y down, z forward); NaN rows
-        for pixels outside the model's image.
-    """
-    camera = _camera(calibration_or_camera)
-    uv = check_uv(uv_px)
-    h = np.asarray(hemisphere, float)
-    if h.ndim and h.shape != (len(uv),):
-        raise ValueError(f"hemisphere must be a scalar or have shape ({len(uv)},), got {h.shape}")
-    return camera.unproject(uv, hemisphere=h)
-
-
 def _tangent_basis(rays: np.ndarray) -> np.ndarray:
     """Orthonormal tangent bases (N, 3, 2) of unit rays (N, 3), any orientation."""
     a = np.abs(rays)
@@ -920,7 +883,7 @@ def model_scale_px_per_rad(calibration_or_camera, rays: np.ndarray) -> np.ndarra
         ``c g(alpha) / sin(alpha)`` and the radial scale ``c g'(alpha)`` (in
         whichever order); for the sphere mapping ``c`` and ``c |cos(alpha)|``.
     """
-    camera = _camera(calibration_or_camera)
+    camera = camera_of(calibration_or_camera)
     r = np.asarray(rays, float).reshape(-1, 3)
     _, J = camera.ideal_from_points(r, jacobians=True)
     JB = J @ _tangent_basis(r)  # |P| = 1: d ideal / d ray on the tangent plane
@@ -999,7 +962,7 @@ def bearing_sqrt_information(
     out = np.full((len(rays), 2, 2), np.nan)
     ok = np.flatnonzero(np.isfinite(rays).all(1))
     if len(ok):
-        camera = _camera(calibration_or_camera)
+        camera = camera_of(calibration_or_camera)
         _, J = camera.ideal_from_points(rays[ok], jacobians=True)
         B = np.array([gtsam.Unit3(rays[k]).basis() for k in ok])
         out[ok] = np.einsum("ab,nbc,ncd->nad", S, J, B)

@@ -32,6 +32,9 @@ import numpy as np
 from ..core._compat import StrEnum
 from ..core.camera import sphere_residual
 from ..core.errors import DatasetError
+from ..core.robust import Loss as Loss  # re-exported: the loss of NoiseOptions
+from ..core.robust import robust_sigma_px as robust_sigma_px  # re-exported
+from ..core.robust import robust_weight, whitening_scale
 
 
 def pose_key(i: int) -> int:
@@ -45,58 +48,6 @@ def point_key(j: int) -> int:
 
 
 INTRINSICS_KEY = gtsam.symbol("k", 0)
-
-
-class Loss(StrEnum):
-    """Robust M-estimators, applied per observation to the whitened residual norm."""
-
-    L2 = "l2"
-    HUBER = "huber"
-    CAUCHY = "cauchy"
-    TUKEY = "tukey"
-    GEMAN_MCCLURE = "geman-mcclure"
-
-
-def robust_weight(r: np.ndarray, loss: Loss | str, k: float) -> tuple[np.ndarray, np.ndarray]:
-    """IRLS weight ``w(r)`` and cost ``rho(r)`` of whitened residual norms ``r`` (N,).
-
-    ``rho(r) = r^2 / 2`` near zero for every loss, so costs compare with L2.
-    """
-    loss = Loss(loss)
-    r = np.asarray(r, float)
-    if loss is Loss.L2:
-        return np.ones_like(r), 0.5 * r * r
-    if loss is Loss.HUBER:
-        big = r > k
-        w = np.where(big, k / np.maximum(r, 1e-300), 1.0)
-        rho = np.where(big, k * r - 0.5 * k * k, 0.5 * r * r)
-        return w, rho
-    if loss is Loss.CAUCHY:
-        q = (r / k) ** 2
-        return 1.0 / (1.0 + q), 0.5 * k * k * np.log1p(q)
-    if loss is Loss.TUKEY:
-        q = np.minimum((r / k) ** 2, 1.0)
-        return (1.0 - q) ** 2 * (r <= k), k * k / 6.0 * (1.0 - (1.0 - q) ** 3)
-    if loss is Loss.GEMAN_MCCLURE:
-        d = k * k + r * r
-        return k**4 / d**2, 0.5 * k * k * r * r / d
-    raise ValueError(f"unknown loss {loss!r}")
-
-
-def robust_sigma_px(residual_norms_px: np.ndarray, floor_px: float = 0.0) -> float:
-    """Robust image-noise sigma (px) from 2-D residual norms (N,): ``median / sqrt(2 ln 2)``.
-
-    The median of the norm of a 2-D isotropic normal with per-axis sigma ``s`` is
-    ``s sqrt(2 ln 2)``; non-finite norms are ignored. Never below ``floor_px``.
-    """
-    r = np.asarray(residual_norms_px, dtype=float).ravel()
-    r = r[np.isfinite(r)]
-    if len(r) == 0:
-        return float(floor_px)
-    return max(float(np.median(r)) / _MEDIAN_NORM_2D, float(floor_px))
-
-
-_MEDIAN_NORM_2D = float(np.sqrt(2.0 * np.log(2.0)))
 
 
 @dataclass
@@ -299,8 +250,7 @@ class _SharedEvaluation:
         sigma = self.noise.sigma_px
         r = np.sqrt((e * e).sum(1)) / sigma
         w, rho = robust_weight(r, self.noise.loss, self.noise.loss_threshold)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            cost_scale = np.where(r > 0, np.sqrt(2.0 * rho) / r, 1.0) / sigma
+        cost_scale = whitening_scale(r, rho) / sigma
         self.e_px = e
         self.e_cost = (e * cost_scale[:, None]).ravel()
         if jacobians:

@@ -603,7 +603,7 @@ def _joint_refine(problem, images, hyp, rot, trans, mask, thr_px):
     """
     from scipy.optimize import least_squares
 
-    from ..core.p3p import _so3_exp
+    from ..core.lie import nearest_rotation, so3_exp
 
     posed = [i for i in images if np.all(np.isfinite(rot[i]))]
     rows = [problem.obs_of_image[i][mask[problem.obs_of_image[i]]] for i in posed]
@@ -631,7 +631,7 @@ def _joint_refine(problem, images, hyp, rot, trans, mask, thr_px):
 
     def poses(x):
         d = x[2 + _N_POLY :].reshape(n_cam, 6)
-        return np.stack([_so3_exp(w) @ r for w, r in zip(d[:, :3], R0)]), t0 + d[:, 3:]
+        return np.stack([so3_exp(w) @ r for w, r in zip(d[:, :3], R0)]), t0 + d[:, 3:]
 
     def residuals(x):
         R, t = poses(x)
@@ -668,8 +668,7 @@ def _joint_refine(problem, images, hyp, rot, trans, mask, thr_px):
     R, t = poses(sol.x)
     rot, trans = rot.copy(), trans.copy()
     for k, i in enumerate(posed):
-        u, _, vt = np.linalg.svd(R[k])
-        rot[i], trans[i] = u @ vt, t[k]
+        rot[i], trans[i] = nearest_rotation(R[k]), t[k]
     return new, rot, trans
 
 

@@ -31,18 +31,17 @@ OpenCV's reprojection error, so the RMS compares with ``cv2.solvePnP`` +
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from ..core.camera import SphereCamera, check_uv
+from ..core.least_squares import Damping, LMStatus, levenberg_marquardt, ridge_scaling
+from ..core.lie import skew, so3_exp
 from ..core.p3p import ransac_pose
-from .graph import robust_sigma_px
+from ..core.robust import Loss, robust_sigma_px, robust_weight
 
 __all__ = ["ResectionResult", "resect"]
-
-# median of the norm of a 2-D standard normal vector: sqrt(2 ln 2)
 
 
 @dataclass
@@ -109,29 +108,8 @@ def _check_inputs(uv_px, xyz_world) -> tuple[np.ndarray, np.ndarray]:
     return check_uv(uv), xyz
 
 
-def _skew_batch(p: np.ndarray) -> np.ndarray:
-    """Cross-product matrices (N, 3, 3) of vectors (N, 3)."""
-    s = np.zeros((len(p), 3, 3))
-    s[:, 0, 1], s[:, 0, 2] = -p[:, 2], p[:, 1]
-    s[:, 1, 0], s[:, 1, 2] = p[:, 2], -p[:, 0]
-    s[:, 2, 0], s[:, 2, 1] = -p[:, 1], p[:, 0]
-    return s
-
-
-def _so3_exp(w: np.ndarray) -> np.ndarray:
-    """Rotation matrix (3, 3) of a rotation vector (3,), radians (Rodrigues)."""
-    th = float(np.linalg.norm(w))
-    k = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
-    if th < 1e-12:
-        return np.eye(3) + k
-    return np.eye(3) + math.sin(th) / th * k + (1.0 - math.cos(th)) / th**2 * (k @ k)
-
-
-def _huber(r: np.ndarray, k: float) -> tuple[np.ndarray, np.ndarray]:
-    """Huber cost ``rho(r)`` and IRLS weight ``w(r)`` of whitened norms ``r`` (N,)."""
-    rho = np.where(r <= k, 0.5 * r * r, k * r - 0.5 * k * k)
-    w = np.where(r <= k, 1.0, k / np.maximum(r, 1e-300))
-    return rho, w
+#: damping of the pose adjustment: 10 tries per iteration, equal cost accepted
+_POSE_DAMPING = Damping(initial=1e-4, max_tries=10, accept_equal=True, scaling=ridge_scaling)
 
 
 def _adjust_pose(
@@ -162,10 +140,39 @@ def _adjust_pose(
         e = z - pred
         return p, e
 
-    def cost(e, sigma):
+    def cost_of(e, sigma):
         r = np.linalg.norm(e, axis=1) / sigma
-        rho, _ = _huber(np.where(np.isfinite(r), r, 1e6), loss_threshold)
+        _, rho = robust_weight(np.where(np.isfinite(r), r, 1e6), Loss.HUBER, loss_threshold)
         return float(rho.sum())
+
+    # the residuals of the last linearisation and of the last trial pose: the stage's
+    # final residuals are the one of the two that belongs to the pose it ends at
+    last: dict = {}
+
+    def linearize(pose, sigma):
+        R_, t_ = pose
+        p = X @ R_.T + t_
+        pred, J = camera.ideal_from_points(p, jacobians=True)
+        e = z - pred
+        last["linearized"] = e
+        r = np.linalg.norm(e, axis=1) / sigma
+        ok = np.isfinite(r) & np.all(np.isfinite(J), axis=(1, 2))
+        w, _ = robust_weight(np.where(ok, r, 0.0), Loss.HUBER, loss_threshold)
+        w = np.where(ok, w, 0.0)
+        # de/dxi = -J @ [-[p]x | I]
+        dp = np.concatenate([-skew(p), np.broadcast_to(np.eye(3), (len(p), 3, 3))], 2)
+        A = -np.einsum("nij,njk->nik", np.where(ok[:, None, None], J, 0.0), dp)
+        e0 = np.where(ok[:, None], e, 0.0)
+        H = np.einsum("n,nki,nkj->ij", w, A, A)
+        g = np.einsum("n,nki,nk->i", w, A, e0)
+        return H, g
+
+    def retract(pose, delta):
+        rot = so3_exp(delta[:3])
+        return rot @ pose[0], rot @ pose[1] + delta[3:]
+
+    def small(c_old, c_new, delta):
+        return (c_old - c_new) / max(c_old, 1e-300) < 1e-12 or np.linalg.norm(delta) < 1e-12
 
     _, e = residual(R, t)
     r0 = np.linalg.norm(e, axis=1)
@@ -175,43 +182,28 @@ def _adjust_pose(
         sigma = float(sigma_px)
     iterations = 0
     for _stage in range(max_stages):
-        lam = 1e-4
-        c = cost(e, sigma)
-        for _ in range(max_iterations):
-            p = X @ R.T + t
-            pred, J = camera.ideal_from_points(p, jacobians=True)
-            e = z - pred
-            r = np.linalg.norm(e, axis=1) / sigma
-            ok = np.isfinite(r) & np.all(np.isfinite(J), axis=(1, 2))
-            _, w = _huber(np.where(ok, r, 0.0), loss_threshold)
-            w = np.where(ok, w, 0.0)
-            # de/dxi = -J @ [-[p]x | I]
-            dp = np.concatenate([-_skew_batch(p), np.broadcast_to(np.eye(3), (len(p), 3, 3))], 2)
-            A = -np.einsum("nij,njk->nik", np.where(ok[:, None, None], J, 0.0), dp)
-            e0 = np.where(ok[:, None], e, 0.0)
-            H = np.einsum("n,nki,nkj->ij", w, A, A)
-            g = np.einsum("n,nki,nk->i", w, A, e0)
-            iterations += 1
-            accepted = False
-            for _try in range(10):
-                try:
-                    delta = -np.linalg.solve(H + lam * np.diag(np.diag(H) + 1e-12), g)
-                except np.linalg.LinAlgError:
-                    lam *= 10.0
-                    continue
-                Rn = _so3_exp(delta[:3]) @ R
-                tn = _so3_exp(delta[:3]) @ t + delta[3:]
-                _, en = residual(Rn, tn)
-                cn = cost(en, sigma)
-                if np.isfinite(cn) and cn <= c:
-                    rel = (c - cn) / max(c, 1e-300)
-                    R, t, e, c = Rn, tn, en, cn
-                    lam = max(lam / 10.0, 1e-12)
-                    accepted = True
-                    break
-                lam *= 10.0
-            if not accepted or rel < 1e-12 or np.linalg.norm(delta) < 1e-12:
-                break
+
+        def cost(pose, sigma=sigma):
+            _, e_trial = residual(*pose)
+            last["trial"] = e_trial
+            return cost_of(e_trial, sigma)
+
+        fit = levenberg_marquardt(
+            (R, t),
+            cost,
+            lambda pose, sigma=sigma: linearize(pose, sigma),
+            retract=retract,
+            converged=small,
+            damping=_POSE_DAMPING,
+            max_iterations=max_iterations,
+            cost0=cost_of(e, sigma),
+        )
+        R, t = fit.x
+        iterations += fit.iterations
+        if fit.status is LMStatus.STALLED:
+            e = last["linearized"]
+        elif fit.iterations:
+            e = last["trial"]
         if sigma_px is not None:
             break
         r = np.linalg.norm(e, axis=1)

@@ -44,6 +44,9 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..core.camera import Model
+from ..core.lie import nearest_rotation
+from ..core.lie import rotation_angle as rotation_angle  # re-exported
+from ..core.robust import MEDIAN_NORM_3D, Loss, robust_weight
 from ..io.calibration import Calibration, RigCalibration
 from ..io.dataset import DatasetError, RigDataset, read_json, split_rig
 from .calibrate import CalibrationOptions, calibrate
@@ -54,11 +57,11 @@ logger = logging.getLogger(__name__)
 RIG_ADJUSTMENT = "per-camera + averaged extrinsics"
 #: Cauchy scale of the robust means, in robust standard deviations of the deviations
 CAUCHY_K = 3.0
-#: median of the norm of a 3-D standard normal vector: turns a median deviation into a
-#: per-axis standard deviation
-_MEDIAN_NORM_3D = 1.5382
 
 Pose = tuple[np.ndarray, np.ndarray]
+
+#: the former name of :func:`gtsam_sphere.core.lie.nearest_rotation`
+project_to_rotation = nearest_rotation
 
 
 # -- pose algebra ------------------------------------------------------------------
@@ -72,38 +75,6 @@ def compose(a: Pose, b: Pose) -> Pose:
 def inverse(a: Pose) -> Pose:
     """The inverse pose: ``(R^T, -R^T t)``."""
     return a[0].T, -a[0].T @ a[1]
-
-
-def rotation_angle(R: np.ndarray) -> np.ndarray:
-    """Rotation angle(s) in radians, accurate near 0 and pi.
-
-    Parameters
-    ----------
-    R : ndarray, shape (3, 3) or (n, 3, 3)
-
-    Returns
-    -------
-    float or ndarray, shape (n,)
-        ``atan2(|axis * sin|, cos)`` from the skew and trace parts.
-    """
-    R = np.asarray(R, float)
-    w = np.stack(
-        [
-            R[..., 2, 1] - R[..., 1, 2],
-            R[..., 0, 2] - R[..., 2, 0],
-            R[..., 1, 0] - R[..., 0, 1],
-        ],
-        axis=-1,
-    )
-    cos = (np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0
-    return np.arctan2(0.5 * np.linalg.norm(w, axis=-1), cos)
-
-
-def project_to_rotation(M: np.ndarray) -> np.ndarray:
-    """The rotation nearest to ``M`` (3, 3) in the Frobenius norm (SVD)."""
-    U, _, Vt = np.linalg.svd(M)
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt)) or 1.0])
-    return U @ D @ Vt
 
 
 @dataclass
@@ -184,14 +155,14 @@ class PoseMean:
 
 def _cauchy_weights(d: np.ndarray, floor: float) -> np.ndarray:
     """Cauchy weights of non-negative deviations ``d`` with a robust (median) scale."""
-    scale = max(float(np.median(d)) / _MEDIAN_NORM_3D, floor)
-    return 1.0 / (1.0 + (d / (CAUCHY_K * scale)) ** 2)
+    scale = max(float(np.median(d)) / MEDIAN_NORM_3D, floor)
+    return robust_weight(d, Loss.CAUCHY, CAUCHY_K * scale)[0]
 
 
 def robust_pose_mean(R: np.ndarray, t: np.ndarray, iterations: int = 50) -> PoseMean:
     """Robust mean of pose samples: reweighted chordal L2 rotation, reweighted translation.
 
-    Rotation: ``project_to_rotation(sum_i w_i R_i)`` (the chordal L2 mean), the
+    Rotation: ``nearest_rotation(sum_i w_i R_i)`` (the chordal L2 mean), the
     weights ``w_i`` Cauchy weights of the angle between ``R_i`` and the mean, scaled
     by their median, iterated to a fixed point. Translation: the per-axis median,
     then the weighted mean with Cauchy weights of ``|t_i - t|``, iterated likewise.
@@ -216,11 +187,11 @@ def robust_pose_mean(R: np.ndarray, t: np.ndarray, iterations: int = 50) -> Pose
     if n == 0:
         raise ValueError("robust_pose_mean needs at least one sample")
     w_rot = np.ones(n)
-    R_mean = project_to_rotation(np.einsum("n,nij->ij", w_rot, R))
+    R_mean = nearest_rotation(np.einsum("n,nij->ij", w_rot, R))
     for _ in range(iterations):
         angle = rotation_angle(np.einsum("ji,njk->nik", R_mean, R))
         w_new = _cauchy_weights(angle, 1e-12)
-        R_mean = project_to_rotation(np.einsum("n,nij->ij", w_new, R))
+        R_mean = nearest_rotation(np.einsum("n,nij->ij", w_new, R))
         converged = np.max(np.abs(w_new - w_rot)) < 1e-10
         w_rot = w_new
         if converged:

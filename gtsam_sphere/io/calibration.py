@@ -10,6 +10,8 @@ from pathlib import Path
 import numpy as np
 
 from ..core.camera import SphereCamera
+from ..core.correction_model import correction_from_dict
+from ..core.rays import bearings
 from .dataset import (
     CALIBRATION_FORMAT,
     RIG_CALIBRATION_FORMAT,
@@ -87,8 +89,6 @@ class Calibration:
             If a pixel has no ray (outside the model's image).
         """
         import gtsam
-
-        from ..estimation.external import bearings
 
         rays = bearings(self.camera, uv_px, hemisphere)
         bad = np.flatnonzero(~np.isfinite(rays).all(1))
@@ -293,8 +293,6 @@ def camera_from_dict(cam: dict, source: str = "<calibration>") -> SphereCamera:
     DatasetError
         Naming ``source`` and the entry when the object is incomplete or malformed.
     """
-    from ..estimation.correct import correction_from_dict
-
     if not isinstance(cam, dict):
         raise DatasetError(f"{source}: 'camera' must be an object, got {type(cam).__name__}")
     mapping = cam.get("mapping", "sphere")

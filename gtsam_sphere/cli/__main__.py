@@ -1,0 +1,7 @@
+"""``python -m gtsam_sphere.cli``."""
+
+import sys
+
+from . import main
+
+sys.exit(main())

@@ -1,0 +1,122 @@
+"""Robust M-estimators: the one home of the loss functions and robust scales (issue 14).
+
+Every robust weighting of the package goes through here: the factor blocks
+(``estimation.graph``), the GTSAM-noise-model blocks (``estimation.external``),
+the single-image resection (``estimation.resect``), P3P's pose refinement
+(``core.p3p``) and the rig's robust pose means (``estimation.rig``).
+
+For a whitened residual norm ``r`` and threshold ``k``, :func:`robust_weight`
+gives the IRLS weight ``w(r)`` and the cost ``rho(r)`` (``r^2 / 2`` near zero for
+every loss); :func:`whitening_scale` turns ``rho`` into the factor on the residual
+whose squared norm is ``2 rho``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ._compat import StrEnum
+
+__all__ = [
+    "MEDIAN_NORM_2D",
+    "MEDIAN_NORM_3D",
+    "MAD_TO_SIGMA",
+    "Loss",
+    "mad_sigma",
+    "robust_sigma_px",
+    "robust_weight",
+    "whitening_scale",
+]
+
+#: median of the norm of a 2-D standard normal vector, ``sqrt(2 ln 2)``
+MEDIAN_NORM_2D = float(np.sqrt(2.0 * np.log(2.0)))
+#: median of the norm of a 3-D standard normal vector: turns a median deviation into a
+#: per-axis standard deviation
+MEDIAN_NORM_3D = 1.5382
+#: the median absolute deviation of a 1-D normal is this fraction of its sigma, inverted
+MAD_TO_SIGMA = 1.4826
+
+
+class Loss(StrEnum):
+    """Robust M-estimators, applied per observation to the whitened residual norm."""
+
+    L2 = "l2"
+    HUBER = "huber"
+    CAUCHY = "cauchy"
+    TUKEY = "tukey"
+    GEMAN_MCCLURE = "geman-mcclure"
+
+
+def robust_weight(r: np.ndarray, loss: Loss | str, k: float) -> tuple[np.ndarray, np.ndarray]:
+    """IRLS weight ``w(r)`` and cost ``rho(r)`` of whitened residual norms ``r`` (N,).
+
+    ``rho(r) = r^2 / 2`` near zero for every loss, so costs compare with L2.
+    """
+    loss = Loss(loss)
+    r = np.asarray(r, float)
+    if loss is Loss.L2:
+        return np.ones_like(r), 0.5 * r * r
+    if loss is Loss.HUBER:
+        big = r > k
+        w = np.where(big, k / np.maximum(r, 1e-300), 1.0)
+        rho = np.where(big, k * r - 0.5 * k * k, 0.5 * r * r)
+        return w, rho
+    if loss is Loss.CAUCHY:
+        q = (r / k) ** 2
+        return 1.0 / (1.0 + q), 0.5 * k * k * np.log1p(q)
+    if loss is Loss.TUKEY:
+        q = np.minimum((r / k) ** 2, 1.0)
+        return (1.0 - q) ** 2 * (r <= k), k * k / 6.0 * (1.0 - (1.0 - q) ** 3)
+    if loss is Loss.GEMAN_MCCLURE:
+        d = k * k + r * r
+        return k**4 / d**2, 0.5 * k * k * r * r / d
+    raise ValueError(f"unknown loss {loss!r}")
+
+
+def robust_sigma_px(residual_norms_px: np.ndarray, floor_px: float = 0.0) -> float:
+    """Robust image-noise sigma (px) from 2-D residual norms (N,): ``median / sqrt(2 ln 2)``.
+
+    The median of the norm of a 2-D isotropic normal with per-axis sigma ``s`` is
+    ``s sqrt(2 ln 2)``; non-finite norms are ignored. Never below ``floor_px``.
+    """
+    r = np.asarray(residual_norms_px, dtype=float).ravel()
+    r = r[np.isfinite(r)]
+    if len(r) == 0:
+        return float(floor_px)
+    return max(float(np.median(r)) / MEDIAN_NORM_2D, float(floor_px))
+
+
+def whitening_scale(r: np.ndarray, rho: np.ndarray) -> np.ndarray:
+    """Factor ``sqrt(2 rho) / r`` (1 where ``r == 0``) putting a robust cost into a residual.
+
+    Parameters
+    ----------
+    r : ndarray, shape (N,)
+        Whitened residual norms.
+    rho : ndarray, shape (N,)
+        Their robust costs (:func:`robust_weight`).
+
+    Returns
+    -------
+    ndarray, shape (N,)
+        ``s`` with ``|s r|^2 / 2 == rho``: scaling a whitened residual by ``s`` makes
+        its least-squares cost the robust one.
+    """
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(r > 0, np.sqrt(2.0 * rho) / r, 1.0)
+
+
+def mad_sigma(values: np.ndarray) -> float:
+    """Robust sigma of 1-D values, ``1.4826 * median(|x - median(x)|)``.
+
+    Parameters
+    ----------
+    values : ndarray, shape (N,)
+        Finite values (a NaN gives NaN).
+
+    Returns
+    -------
+    float
+    """
+    v = np.asarray(values, float)
+    return MAD_TO_SIGMA * float(np.median(np.abs(v - np.median(v))))
