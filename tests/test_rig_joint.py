@@ -3,6 +3,8 @@ derivatives on the manifold) and the joint stage on a simulated rig."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import gtsam
 import numpy as np
 import pytest
@@ -209,3 +211,171 @@ def test_rig_problem_blocks_shared_match_alone():
 
         numeric = numericalDerivative11(f, get(key), delta=1e-6) * scale[:, None]
         np.testing.assert_allclose(H[q], numeric, rtol=1e-5, atol=1e-6 * np.abs(numeric).max())
+
+
+# -- the joint stage on a rig simulated with the package's own camera models ----------
+
+
+def _rot(axis, deg):
+    a = np.asarray(axis, float)
+    return gtsam.Rot3.AxisAngle(gtsam.Point3(*(a / np.linalg.norm(a))), np.radians(deg)).matrix()
+
+
+TRUE_CAM1_FROM_RIG = (_rot([0.2, 1.0, 0.1], 8.0), np.array([-0.16, 0.01, 0.005]))
+
+
+def _in_model_rig(seed=0, n_frames=12, noise_px=0.3):
+    """Two cameras of the package's own models (truth exactly representable) on a rig,
+    targets around them (12 surveyed at 5 mm, the rest approximate only), one unframed
+    image of camera 0. Returns (rig dataset, truth dict, per-camera start Calibrations,
+    start cam_from_rig, rig_from_world, target xyz): the start is the truth perturbed
+    as a per-camera stage leaves it (0.05 deg, 1 mm, a few px of intrinsics)."""
+    from gtsam_sphere.core.camera import SphereCamera
+    from gtsam_sphere.io.calibration import Calibration
+    from gtsam_sphere.io.dataset import parse_rig_dataset
+
+    rng = np.random.default_rng(seed)
+    cams = {
+        "cam0": SphereCamera(
+            1000,
+            1000,
+            500.3,
+            498.7,
+            318.0,
+            brown={"p1": 2e-4, "p2": -1e-4},
+            radial={"g3": -0.02, "g5": 0.003},
+        ),
+        "cam1": SphereCamera(900, 900, 451.2, 447.9, 290.0, radial={"g3": 0.01}),
+    }
+    ext = {"cam0": (np.eye(3), np.zeros(3)), "cam1": TRUE_CAM1_FROM_RIG}
+    n_t = 160
+    d = rng.normal(size=(n_t, 3))
+    xyz = d / np.linalg.norm(d, axis=1, keepdims=True) * rng.uniform(1.5, 4.0, (n_t, 1))
+    frames = {}
+    for k in range(n_frames):
+        R = _rot(rng.normal(size=3), rng.uniform(0, 60))
+        frames[f"{k:02d}"] = (R, -R @ rng.uniform(-0.8, 0.8, 3))
+    shots = [
+        (f"{cid}_{f}", cid, f, ext[cid][0] @ R, ext[cid][0] @ t + ext[cid][1])
+        for f, (R, t) in frames.items()
+        for cid in cams
+    ]
+    R_own = _rot([1, 0, 0], 30.0)
+    shots.append(("cam0_own", "cam0", None, R_own, np.array([0.2, -0.1, 0.3])))
+    images = []
+    for iid, cid, f, R, t in shots:
+        pc = xyz @ R.T + t
+        alpha = np.degrees(np.arccos(pc[:, 2] / np.linalg.norm(pc, axis=1)))
+        uv = cams[cid].project(pc)
+        ok = (alpha < 100.0) & np.isfinite(uv).all(axis=1)
+        w = cams[cid].width
+        ok[ok] &= ((uv[ok] > 2.0) & (uv[ok] < w - 3.0)).all(axis=1)
+        uv = uv + rng.normal(0.0, noise_px, uv.shape)
+        im = {
+            "id": iid,
+            "camera": cid,
+            "observations": [
+                {"target": f"T{j:03d}", "uv": uv[j].tolist()} for j in np.flatnonzero(ok)
+            ],
+        }
+        if f is not None:
+            im["frame"] = f
+        images.append(im)
+    approx = xyz + rng.normal(0.0, 0.02, xyz.shape)
+    targets = [{"id": f"T{j:03d}", "xyz": approx[j].tolist()} for j in range(n_t)]
+    for j in range(12):
+        p = xyz[j] + rng.normal(0.0, 0.005, 3)
+        targets[j] = {"id": f"T{j:03d}", "xyz": p.tolist(), "sigma": 0.005}
+    doc = {
+        "format": "gtsam-sphere/dataset@2",
+        "units": "m",
+        "cameras": [{"id": c, "width": cams[c].width, "height": cams[c].height} for c in cams],
+        "targets": targets,
+        "images": images,
+    }
+    rig = parse_rig_dataset(doc)
+
+    def nudge(pose, deg=0.05, m=0.001):
+        R = _rot(rng.normal(size=3), deg) @ pose[0]
+        return R, pose[1] + rng.normal(0.0, m / np.sqrt(3), 3)
+
+    calibs = {}
+    by_id = {im["id"]: im for im in images}
+    for cid, cam in cams.items():
+        mine = [s for s in shots if s[1] == cid]
+        obs = [(s[0], o["target"], o["uv"]) for s in mine for o in by_id[s[0]]["observations"]]
+        start = replace(
+            cam, xp=cam.xp + 0.8, yp=cam.yp - 0.5, c=cam.c * 1.002, radial=dict(cam.radial)
+        )
+        poses = [nudge((s[3], s[4])) for s in mine]
+        calibs[cid] = Calibration(
+            model="radial",
+            camera=start,
+            image_ids=[s[0] for s in mine],
+            cam_from_world_R=np.array([p[0] for p in poses]),
+            cam_from_world_t=np.array([p[1] for p in poses]),
+            target_ids=[t["id"] for t in targets],
+            target_xyz=approx,
+            statistics={"sigma_px": noise_px},
+            extra={
+                "observations": {
+                    "image": [o[0] for o in obs],
+                    "target": [o[1] for o in obs],
+                    "uv_px": np.array([o[2] for o in obs]),
+                }
+            },
+        )
+    start_ext = {"cam0": ext["cam0"], "cam1": nudge(ext["cam1"], 0.1, 0.005)}
+    start_frames = {f: nudge(p) for f, p in frames.items()}
+    start_xyz = {f"T{j:03d}": xyz[j] + rng.normal(0.0, 0.002, 3) for j in range(n_t)}
+    truth = {"cameras": cams, "cam_from_rig": ext, "frames": frames, "xyz": xyz}
+    return rig, truth, calibs, start_ext, start_frames, start_xyz
+
+
+def _extrinsic_error(R, t, truth):
+    """Rotation error (rad, camera axes: R = exp(phi) R_true) and translation error."""
+    phi = gtsam.Rot3.Logmap(gtsam.Rot3(R @ truth[0].T))
+    return np.asarray(phi), t - truth[1]
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_joint_stage_recovers_in_model_rig(seed):
+    from gtsam_sphere.estimation.rig_joint import adjust_rig_jointly, precision_from_covariance
+
+    rig, truth, calibs, ext0, frames0, xyz0 = _in_model_rig(seed)
+    jr = adjust_rig_jointly(rig, calibs, ext0, frames0, xyz0)
+    assert jr.result.converged and jr.datum == "control"
+    assert np.allclose(jr.cam_from_rig["cam0"][0], np.eye(3))
+    phi0, dt0 = _extrinsic_error(*ext0["cam1"], TRUE_CAM1_FROM_RIG)
+    phi, dt = _extrinsic_error(*jr.cam_from_rig["cam1"], TRUE_CAM1_FROM_RIG)
+    cov = jr.cam_from_rig_covariance["cam1"]
+    sigma = np.sqrt(np.diag(cov))
+    # the error is consistent with the reported precision, and far below the start's
+    assert np.all(np.abs(phi) < 3.0 * sigma[:3]), (np.degrees(phi), np.degrees(sigma[:3]))
+    assert np.all(np.abs(dt) < 3.0 * sigma[3:]), (dt, sigma[3:])
+    assert np.linalg.norm(phi) < 0.5 * np.linalg.norm(phi0)
+    assert np.linalg.norm(dt) < 0.5 * np.linalg.norm(dt0)
+    pr = precision_from_covariance(cov, jr.cam_from_rig["cam1"][1])
+    assert pr["rotation_sigma_deg"] == pytest.approx(np.degrees(np.linalg.norm(sigma[:3])))
+    assert 0 < pr["baseline_sigma"] < np.linalg.norm(sigma[3:])
+    # noise 0.3 px per axis: the raw residuals' RMS near 0.3 sqrt(2)
+    for cid in rig.camera_ids:
+        r = jr.residuals_px[cid]
+        used = np.isfinite(r).all(axis=1)  # targets seen in one image only: left out
+        assert np.array_equal(used, jr.weights[cid] > 0) and used.mean() > 0.9
+        rms = np.sqrt(np.mean(np.sum(r[used] ** 2, axis=1)))
+        assert 0.35 < rms < 0.5 and 0.25 < jr.sigma_px[cid] < 0.35
+        cam, true = jr.cameras[cid], truth["cameras"][cid]
+        assert abs(cam.c - true.c) < 0.3 and abs(cam.xp - true.xp) < 0.3
+    assert 0.8 < jr.variance_factor < 1.2
+    # every framed image's pose is cam_from_rig * rig_from_world; the unframed one its own
+    for iid, (R, t) in jr.cam_from_world.items():
+        cid, _, f = iid.partition("_")
+        if f == "own":
+            R_true, t_true = _rot([1, 0, 0], 30.0), np.array([0.2, -0.1, 0.3])
+            assert np.degrees(np.linalg.norm(gtsam.Rot3.Logmap(gtsam.Rot3(R @ R_true.T)))) < 0.3
+            assert np.linalg.norm(t - t_true) < 0.01
+            continue
+        Rr, tr = jr.rig_from_world[f]
+        Rc, tc = jr.cam_from_rig[cid]
+        assert np.allclose(R, Rc @ Rr, atol=1e-12) and np.allclose(t, Rc @ tr + tc, atol=1e-12)
