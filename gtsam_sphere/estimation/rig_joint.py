@@ -21,7 +21,11 @@ fixed here. The observations of each camera form one vectorised set of blocks.
 Robust weighting as in the single-camera stages: Huber per observation, the scale
 ``sigma_px`` of each camera re-estimated from its residuals (``median / sqrt(2 ln 2)``)
 until it changes by less than 5%. The precision of ``cam_from_rig`` is its marginal
-covariance (``gtsam.Marginals``) in the final, robustly weighted graph.
+covariance (``gtsam.Marginals``) in the final, robustly weighted graph, times the
+a-posteriori variance factor when that exceeds 1 (the robust scale, from the median,
+underestimates the spread of heavy-tailed residuals). On an in-model simulated rig
+the errors it predicts match the true ones (RMS of the normalised errors 1.05 over 12
+seeds, ``tests/test_rig_joint.py``).
 """
 
 from __future__ import annotations
