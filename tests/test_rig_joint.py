@@ -224,7 +224,7 @@ def _rot(axis, deg):
 TRUE_CAM1_FROM_RIG = (_rot([0.2, 1.0, 0.1], 8.0), np.array([-0.16, 0.01, 0.005]))
 
 
-def _in_model_rig(seed=0, n_frames=12, noise_px=0.3):
+def _in_model_rig(seed=0, n_frames=12, noise_px=0.3, n_surveyed=12):
     """Two cameras of the package's own models (truth exactly representable) on a rig,
     targets around them (12 surveyed at 5 mm, the rest approximate only), one unframed
     image of camera 0. Returns (rig dataset, truth dict, per-camera start Calibrations,
@@ -283,7 +283,7 @@ def _in_model_rig(seed=0, n_frames=12, noise_px=0.3):
         images.append(im)
     approx = xyz + rng.normal(0.0, 0.02, xyz.shape)
     targets = [{"id": f"T{j:03d}", "xyz": approx[j].tolist()} for j in range(n_t)]
-    for j in range(12):
+    for j in range(n_surveyed):
         p = xyz[j] + rng.normal(0.0, 0.005, 3)
         targets[j] = {"id": f"T{j:03d}", "xyz": p.tolist(), "sigma": 0.005}
     doc = {
@@ -419,3 +419,23 @@ def test_joint_stage_on_simulated_rig_improves_on_the_averaged_extrinsics():
     assert st["trusted"] and st["joint"]["converged"]
     for cid in rig.camera_ids:
         assert st["cameras"][cid]["rms_px_rig"] < 0.45  # noise 0.3 px per axis
+
+
+def test_joint_stage_free_network():
+    """No target has a sigma: minimal constraints, then the S-transform onto the
+    approximate coordinates (as a single camera's free network)."""
+    from gtsam_sphere.estimation.rig_joint import adjust_rig_jointly
+
+    rig, truth, calibs, ext0, frames0, xyz0 = _in_model_rig(0, n_surveyed=0)
+    jr = adjust_rig_jointly(rig, calibs, ext0, frames0, xyz0)
+    assert jr.result.converged and jr.datum == "free"
+    phi, dt = _extrinsic_error(*jr.cam_from_rig["cam1"], TRUE_CAM1_FROM_RIG)
+    # the datum (2 cm approximations of 160 targets) sets the scale to a few 1e-4
+    assert np.degrees(np.linalg.norm(phi)) < 0.05 and np.linalg.norm(dt) < 0.002
+    assert jr.cam_from_rig_covariance["cam1"] is not None
+    for iid, (R, t) in jr.cam_from_world.items():
+        cid, _, f = iid.partition("_")
+        if f != "own":
+            Rr, tr = jr.rig_from_world[f]
+            Rc, tc = jr.cam_from_rig[cid]
+            assert np.allclose(R, Rc @ Rr, atol=1e-12) and np.allclose(t, Rc @ tr + tc, atol=1e-12)
