@@ -25,7 +25,10 @@ covariance (``gtsam.Marginals``) in the final, robustly weighted graph, times th
 a-posteriori variance factor when that exceeds 1 (the robust scale, from the median,
 underestimates the spread of heavy-tailed residuals). On an in-model simulated rig
 the errors it predicts match the true ones (RMS of the normalised errors 1.05 over 12
-seeds, ``tests/test_rig_joint.py``).
+seeds, ``tests/test_rig_joint.py``); on the simulator's stereo rig (its lenses outside
+the package's models, model ``radial``) 1.20 over 10 seeds, every error within 3 sigma,
+and the joint stage lowered the mean error of ``cam_from_rig`` from 0.0144 to 0.0107 deg
+and from 0.59 to 0.32 mm against the averaged extrinsics.
 """
 
 from __future__ import annotations
