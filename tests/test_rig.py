@@ -36,6 +36,13 @@ from gtsam_sphere.io.dataset import (
 from gtsam_sphere.simulate import SimulationOptions, make_lens, simulate_room
 
 
+def rotation_vector(R: np.ndarray) -> np.ndarray:
+    """Axis times angle (rad) of a rotation (3, 3)."""
+    import gtsam
+
+    return np.asarray(gtsam.Rot3.Logmap(gtsam.Rot3(np.asarray(R, float))))
+
+
 def rotation(axis, deg: float) -> np.ndarray:
     """Rotation (3, 3) by ``deg`` degrees about ``axis`` (Rodrigues)."""
     a = np.asarray(axis, float) / np.linalg.norm(axis)
@@ -495,6 +502,12 @@ def _check_rig_result(calib: RigCalibration, truth, rot_deg: float, t_m: float) 
     pr = st["cameras"]["cam1"]["cam_from_rig_precision"]
     assert pr["parent"] == "cam0" and pr["n_frames"] == len(calib.frame_ids)
     assert 0 < pr["rotation_spread_deg"] < 0.2 and 0 < pr["translation_spread_norm"] < 0.01
+    # the joint adjustment's precision: the true error within 3 sigma, per axis
+    phi = rotation_vector(R @ truth[0].T)
+    sigma_rot = np.radians(np.asarray(pr["rotation_sigma_deg_axes"]))
+    assert np.all(np.abs(phi) < 3.0 * sigma_rot), (phi, sigma_rot)
+    assert np.all(np.abs(t - truth[1]) < 3.0 * np.asarray(pr["translation_sigma"]))
+    assert st["joint"]["converged"] and 0.7 < st["joint"]["variance_factor"] < 1.5
     # every framed image's pose is cam_from_rig * rig_from_world
     frame_index = {f: k for k, f in enumerate(calib.frame_ids)}
     for k, (cid, f) in enumerate(zip(calib.image_camera, calib.image_frame)):
@@ -514,7 +527,7 @@ def test_simulated_stereo_rig_cli_and_round_trip(tmp_path, capsys):
     code = main(["calibrate", str(path), "-o", str(out), "--model", "radial", "--quiet"])
     printed = capsys.readouterr().out
     assert code == 0, printed
-    assert "not yet a joint rig adjustment" in printed
+    assert "(joint (per-camera initialisation" in printed and "(joint adjustment)" in printed
     calib = load_calibration(out)
     assert isinstance(calib, RigCalibration)
     _check_rig_result(calib, truth, rot_deg=0.1, t_m=0.003)
@@ -566,9 +579,14 @@ def test_opencv_omnidir_stereo_rig(tmp_path, capsys):
     calib = load_calibration(out)
     R, t = calib.cam_from_rig["cam1"]
     rms = {c: calib.statistics["cameras"][c]["rms_px"] for c in calib.camera_ids}
+    rms_rig = {c: calib.statistics["cameras"][c]["rms_px_rig"] for c in calib.camera_ids}
+    pr = calib.statistics["cameras"]["cam1"]["cam_from_rig_precision"]
+    R0, t0 = (np.asarray(pr["cam_from_rig_averaged"][k]) for k in ("R", "t"))
     print(
-        f"exit {code}; RMS per camera {rms}; baseline {np.linalg.norm(t) * 1e3:.2f} mm; "
-        f"rotation {np.degrees(rotation_angle(R)):.3f} deg; "
+        f"exit {code}; RMS per camera {rms}, with the rig {rms_rig}; baseline "
+        f"{np.linalg.norm(t) * 1e3:.2f} +- {pr['baseline_sigma'] * 1e3:.3f} mm (averaged "
+        f"{np.linalg.norm(t0) * 1e3:.2f}); rotation {np.degrees(rotation_angle(R)):.3f} +- "
+        f"{pr['rotation_sigma_deg']:.4f} deg (averaged {np.degrees(rotation_angle(R0)):.3f}); "
         f"distrust {calib.statistics['distrust']}"
     )
     assert calib.statistics["n_frames"] == 39
@@ -577,3 +595,6 @@ def test_opencv_omnidir_stereo_rig(tmp_path, capsys):
     assert rms["cam0"] < 0.439 and rms["cam1"] < 0.407
     assert np.linalg.norm(t) == pytest.approx(0.1605, abs=0.003)
     assert np.degrees(rotation_angle(R)) == pytest.approx(7.93, abs=0.3)
+    # the joint adjustment: the rig's poses fit better than the averaged ones did
+    assert all(rms_rig[c] < 0.4 for c in rms_rig)
+    assert 0 < pr["rotation_sigma_deg"] < 0.1 and 0 < pr["baseline_sigma"] < 0.001

@@ -50,6 +50,21 @@ def point_key(j: int) -> int:
 INTRINSICS_KEY = gtsam.symbol("k", 0)
 
 
+def intrinsics_key(c: int) -> int:
+    """GTSAM key of camera ``c``'s intrinsics in a rig graph (``k0`` is ``INTRINSICS_KEY``)."""
+    return gtsam.symbol("k", c)
+
+
+def frame_key(f: int) -> int:
+    """GTSAM key of rig frame ``f``'s ``world_from_rig`` pose (a rig graph)."""
+    return gtsam.symbol("f", f)
+
+
+def extrinsics_key(c: int) -> int:
+    """GTSAM key of camera ``c``'s ``rig_from_cam`` pose (a rig graph)."""
+    return gtsam.symbol("e", c)
+
+
 @dataclass
 class NoiseOptions:
     """Measurement noise and robust loss.
@@ -111,57 +126,89 @@ class _SharedEvaluation:
             first.brown_scale_px,
             first.noise,
             first.radial_names,
+            first.intrinsics_key,
             first.radial_warp,
         )
         for b in blocks:
-            if (b.brown_names, b.brown_scale_px, b.noise, b.radial_names, b.radial_warp) != model:
-                raise ValueError("blocks sharing an evaluation must share model and noise")
-        self.brown_names, self.brown_scale_px, self.noise, self.radial_names = model[:4]
-        self.radial_warp = model[4]
+            if (
+                b.brown_names,
+                b.brown_scale_px,
+                b.noise,
+                b.radial_names,
+                b.intrinsics_key,
+                b.radial_warp,
+            ) != model:
+                raise ValueError("blocks sharing an evaluation must share model, noise, intrinsics")
+        (self.brown_names, self.brown_scale_px, self.noise, self.radial_names) = model[:4]
+        self.intrinsics_key = model[4]
+        self.radial_warp = model[5]
         self.pose_keys = sorted({k for b in blocks for k in b.pose_keys})
         self.point_keys = sorted({k for b in blocks for k in b.point_keys})
-        self.all_keys = sorted({*self.pose_keys, *self.point_keys, INTRINSICS_KEY})
+        self.extrinsic_keys = sorted({k for b in blocks for k in b.extrinsic_keys})
+        self.all_keys = sorted(
+            {*self.pose_keys, *self.point_keys, *self.extrinsic_keys, self.intrinsics_key}
+        )
         pose_sorted = np.array(self.pose_keys, np.int64)
         point_sorted = np.array(self.point_keys, np.int64)
+        extrinsic_sorted = np.array(self.extrinsic_keys, np.int64)
         n_theta = 3 + len(self.radial_names or ()) + len(self.brown_names)
+        self.n_theta = n_theta
+        # columns of an observation's Jacobian: [omega, v] of its pose, its point, theta,
+        # and, when some observation of the set composes an extrinsic pose, [omega, v] of it
+        n_ext = 6 if self.extrinsic_keys else 0
         starts = np.cumsum([0] + [b.n for b in blocks]).tolist()
         self.n = starts[-1]
         self.obs_slices = [slice(a, b) for a, b in zip(starts, starts[1:])]
         self.row_slices = [slice(2 * a, 2 * b) for a, b in zip(starts, starts[1:])]
-        gp, gq = [], []
-        # buffer position of d(e_a)/d[omega, v, point, theta]_c of observation n at [a, c, n]
-        pos = np.empty((2, 9 + n_theta, self.n), np.intp)
+        gp, gq, ge = [], [], []
+        # buffer position of d(e_a)/d[omega, v, point, theta, (omega_e, v_e)]_c of
+        # observation n at [a, c, n]
+        pos = np.empty((2, 9 + n_theta + n_ext, self.n), np.intp)
         layout = []  # per block: (offset, columns) of each key's block
         size = 0
         for b, s in zip(blocks, starts):
             rows = 2 * b.n
-            cols = [3] * len(b.point_keys) + [6] * len(b.pose_keys) + [n_theta]
+            n_pt, n_ps, n_ex = len(b.point_keys), len(b.pose_keys), len(b.extrinsic_keys)
+            cols = [3] * n_pt + [6] * n_ps + [6] * n_ex + [n_theta]
             offsets = size + rows * np.concatenate([[0], np.cumsum(cols)[:-1]])
             layout.append(list(zip(offsets.tolist(), cols)))
             size += rows * sum(cols)
             r = 2 * np.arange(b.n) + np.arange(2)[:, None, None]  # row of e_a, (2, 1, n)
             col = rows * np.arange(9 + n_theta)[:, None]  # column offsets, (9 + n_theta, 1)
-            n_pt = len(b.point_keys)
-            pos[:, :6, s : s + b.n] = offsets[n_pt + b.pose_local] + col[:6] + r
-            pos[:, 6:9, s : s + b.n] = offsets[np.maximum(b.point_local, 0)] + col[:3] + r
-            pos[:, 9:, s : s + b.n] = offsets[-1] + col[:n_theta] + r
+            sl = slice(s, s + b.n)
+            pos[:, :6, sl] = offsets[n_pt + b.pose_local] + col[:6] + r
+            pos[:, 6:9, sl] = offsets[np.maximum(b.point_local, 0)] + col[:3] + r
+            pos[:, 9 : 9 + n_theta, sl] = offsets[-1] + col[:n_theta] + r
+            if n_ext:
+                ext = offsets[n_pt + n_ps + np.maximum(b.extrinsic_local, 0)]
+                pos[:, 9 + n_theta :, sl] = ext + col[:6] + r
             keys = np.array(b.pose_keys, np.int64)[b.pose_local]
             gp.append(np.searchsorted(pose_sorted, keys))
             keys = np.array(b.point_keys + [0], np.int64)[b.point_local]  # -1: the dummy 0
             gq.append(np.where(b.free, np.searchsorted(point_sorted, keys), -1))
-        # fixed (exact control) observations write their point columns to a trash area
+            keys = np.array(b.extrinsic_keys + [0], np.int64)[b.extrinsic_local]
+            ge.append(np.where(b.composed, np.searchsorted(extrinsic_sorted, keys), -1))
+        # fixed (exact control) observations write their point columns, and observations
+        # without an extrinsic pose their extrinsic columns, to a trash area
         free = np.concatenate([b.free for b in blocks])
         pos[:, 6:9, ~free] = size + 3 * np.arange(2)[:, None, None] + np.arange(3)[:, None]
+        composed = np.concatenate([b.composed for b in blocks])
+        if n_ext:
+            trash = size + 6 + 6 * np.arange(2)[:, None, None] + np.arange(6)[:, None]
+            pos[:, 9 + n_theta :, ~composed] = trash
         self.pos = pos
-        self.buf = np.zeros(size + 6)
+        self.buf = np.zeros(size + 18)
         self.views = [
             [self.buf[o : o + c * 2 * b.n].reshape(c, 2 * b.n).T for o, c in lay]
             for b, lay in zip(blocks, layout)
         ]
         self.gp = np.concatenate(gp).astype(np.intp)
         self.gq = np.concatenate(gq).astype(np.intp)
+        # -1 (no extrinsic pose) picks the identity appended after the extrinsic poses
+        self.ge = np.concatenate(ge).astype(np.intp)
         self.free = free
         self.all_free = bool(free.all())
+        self.composed = composed
         self.fixed_xyz = np.concatenate([b.fixed_xyz for b in blocks]).T.copy()  # (3, n)
         self.uv_px = np.concatenate([b.uv_px for b in blocks])
         self.snapshot: gtsam.Values | None = None  # the Values of the stored evaluation
@@ -213,19 +260,27 @@ class _SharedEvaluation:
         self._compute(values, jacobians)
 
     def _compute(self, values: gtsam.Values, jacobians: bool) -> bool:
-        """Evaluate every observation; returns whether all inputs were finite."""
+        """Evaluate every observation; returns whether all inputs were finite.
+
+        An observation's camera pose is ``world_from_cam = A`` (its pose key) or, when it
+        has an extrinsic key, ``world_from_cam = A * B`` (``A = world_from_rig``, ``B =
+        rig_from_cam``). With ``q = A^-1 p`` the point in the frame of ``A`` and
+        ``pc = B^-1 q``, right perturbations ``A exp(dA)``, ``B exp(dB)`` give
+        ``d pc / d omega_B = [pc]x``, ``d pc / d v_B = -I`` and ``d pc / d dA = R_B^T
+        (d q / d dA)`` with ``d q / d omega_A = [q]x``, ``d q / d v_A = -I``, which is
+        the chain rule through ``d(A B) / d dA = Ad(B^-1)``.
+        """
+        T = _extract_poses(values, self.pose_keys)  # R (by rows), t
+        E = _extract_poses(values, self.extrinsic_keys) if self.extrinsic_keys else None
         if _VALUES_EXTRACT:
-            T = gtsam.utilities.extractPose3(values.extract(self.pose_keys))  # R (by rows), t
             P = np.zeros((0, 3))
             if self.point_keys:
                 P = gtsam.utilities.extractPoint3(values.extract(self.point_keys))
-            if T.shape[0] != len(self.pose_keys) or P.shape[0] != len(self.point_keys):
+            if P.shape[0] != len(self.point_keys):
                 raise TypeError("pose keys must hold Pose3 values and target keys Point3 values")
         else:
-            M = [values.atPose3(k).matrix() for k in self.pose_keys]
-            T = np.array([np.concatenate([m[:3, :3].ravel(), m[:3, 3]]) for m in M])
             P = np.array([values.atPoint3(k) for k in self.point_keys]).reshape(-1, 3)
-        theta = values.atVector(INTRINSICS_KEY)
+        theta = values.atVector(self.intrinsics_key)
         # one row per component, one column per observation
         Tn = np.ascontiguousarray(T.T)[:, self.gp]
         R = Tn[:9].reshape(3, 3, self.n)  # R[i, j] = (R_wc)_ij
@@ -235,7 +290,13 @@ class _SharedEvaluation:
             pw = self.fixed_xyz.copy()
             pw[:, self.free] = P.T[:, self.gq[self.free]]
         d = pw - Tn[9:]
-        pc = R[0] * d[0] + R[1] * d[1] + R[2] * d[2]  # R_wc^T (p_world - t)
+        q = R[0] * d[0] + R[1] * d[1] + R[2] * d[2]  # R_wc^T (p_world - t)
+        pc = q
+        if E is not None:
+            En = np.ascontiguousarray(np.vstack([E, _IDENTITY_POSE]).T)[:, self.ge]
+            Rb = En[:9].reshape(3, 3, self.n)  # rig_from_cam rotation (identity: none)
+            db = q - En[9:]
+            pc = Rb[0] * db[0] + Rb[1] * db[1] + Rb[2] * db[2]  # R_rc^T (q - t_rc)
         out = sphere_residual(
             theta,
             self.brown_names,
@@ -260,23 +321,50 @@ class _SharedEvaluation:
             J = np.empty(self.pos.shape)  # [row u/v, column, observation]
             Jc = J[:, 3:6]
             np.multiply(J_pc.transpose(1, 2, 0), scale, out=Jc)  # weighted d(e)/d(pc)
-            px, py, pz = pc
-            # d(e)/d(omega) = J_pc [pc]x: row by row, the cross product (row x pc)
-            np.multiply(Jc[:, 1], pz, out=J[:, 0])
-            J[:, 0] -= Jc[:, 2] * py
-            np.multiply(Jc[:, 2], px, out=J[:, 1])
-            J[:, 1] -= Jc[:, 0] * pz
-            np.multiply(Jc[:, 0], py, out=J[:, 2])
-            J[:, 2] -= Jc[:, 1] * px
-            # d(e)/d(p_world) = J_pc R_wc^T
+            if E is not None:
+                c0 = 9 + self.n_theta
+                _rows_cross(Jc, pc, J[:, c0 : c0 + 3])  # d(e)/d(omega_B) = J_pc [pc]x
+                np.negative(Jc, out=J[:, c0 + 3 : c0 + 6])  # d(e)/d(v_B) = -J_pc
+                # d(e)/d(q) = J_pc R_B^T, in place of d(e)/d(pc) (the identity if no B)
+                Jc[...] = np.einsum("akn,jkn->ajn", Jc, Rb)
+            # d(e)/d(omega) = J_q [q]x: row by row, the cross product (row x q)
+            _rows_cross(Jc, q, J[:, 0:3])
+            # d(e)/d(p_world) = J_q R_wc^T
             Jp = J[:, 6:9]
             np.multiply(Jc[:, 0, None], R[:, 0], out=Jp)
             Jp += Jc[:, 1, None] * R[:, 1]
             Jp += Jc[:, 2, None] * R[:, 2]
-            np.negative(Jc, out=Jc)  # d(pc)/d(v) = -I
-            np.multiply(J_theta.transpose(1, 2, 0), scale, out=J[:, 9:])
+            np.negative(Jc, out=Jc)  # d(q)/d(v) = -I
+            np.multiply(J_theta.transpose(1, 2, 0), scale, out=J[:, 9 : 9 + self.n_theta])
             self.buf[self.pos] = J
-        return bool(np.isfinite(T).all() and np.isfinite(P).all() and np.isfinite(theta).all())
+        finite = np.isfinite(T).all() and np.isfinite(P).all() and np.isfinite(theta).all()
+        return bool(finite and (E is None or np.isfinite(E).all()))
+
+
+#: a ``Pose3`` as a row of ``gtsam.utilities.extractPose3``: the identity
+_IDENTITY_POSE = np.concatenate([np.eye(3).ravel(), np.zeros(3)])[None]
+
+
+def _extract_poses(values: gtsam.Values, keys: list[int]) -> np.ndarray:
+    """``Pose3`` values of ``keys`` (sorted) as rows ``[R (by rows), t]``, (n, 12)."""
+    if _VALUES_EXTRACT:
+        T = gtsam.utilities.extractPose3(values.extract(keys))
+        if T.shape[0] != len(keys):
+            raise TypeError("pose keys must hold Pose3 values and target keys Point3 values")
+        return T
+    M = [values.atPose3(k).matrix() for k in keys]
+    return np.array([np.concatenate([m[:3, :3].ravel(), m[:3, 3]]) for m in M]).reshape(-1, 12)
+
+
+def _rows_cross(J: np.ndarray, p: np.ndarray, out: np.ndarray) -> None:
+    """``out[a, :, n] = J[a, :, n] x p[:, n]``: ``J [p]x`` of rows ``J`` (2, 3, n), ``p`` (3, n)."""
+    px, py, pz = p
+    np.multiply(J[:, 1], pz, out=out[:, 0])
+    out[:, 0] -= J[:, 2] * py
+    np.multiply(J[:, 2], px, out=out[:, 1])
+    out[:, 1] -= J[:, 0] * pz
+    np.multiply(J[:, 0], py, out=out[:, 2])
+    out[:, 2] -= J[:, 1] * px
 
 
 class ObservationBlock:
@@ -307,6 +395,14 @@ class ObservationBlock:
     noise : NoiseOptions
     radial_names : tuple of str or None
         Radial-mapping coefficients in the intrinsics vector; None: sphere mapping.
+    extrinsic_keys : list of int, optional
+        Keys of ``rig_from_cam`` poses (a rig graph): an observation with one has
+        ``world_from_cam = pose * extrinsic``, its pose key then holding the frame's
+        ``world_from_rig``.
+    extrinsic_local : ndarray of int, shape (n,), optional
+        Index into ``extrinsic_keys`` per observation, -1 (default) for none.
+    intrinsics_key : int
+        Key of the intrinsics vector (one per camera in a rig graph).
     radial_warp : float or None
         The radial mapping's fixed warp ``w`` (:func:`~gtsam_sphere.core.camera.radial_g`).
     """
@@ -323,6 +419,9 @@ class ObservationBlock:
         brown_scale_px,
         noise: NoiseOptions,
         radial_names: tuple[str, ...] | None = None,
+        extrinsic_keys=(),
+        extrinsic_local=None,
+        intrinsics_key: int = INTRINSICS_KEY,
         radial_warp: float | None = None,
     ):
         self.radial_names = None if radial_names is None else tuple(radial_names)
@@ -338,7 +437,13 @@ class ObservationBlock:
         self.brown_scale_px = float(brown_scale_px)
         self.noise = noise
         self.n = len(self.uv_px)
-        self.keys = self.point_keys + self.pose_keys + [INTRINSICS_KEY]
+        self.extrinsic_keys = [int(k) for k in extrinsic_keys]
+        if extrinsic_local is None:
+            extrinsic_local = np.full(self.n, -1)
+        self.extrinsic_local = np.asarray(extrinsic_local, int)
+        self.composed = self.extrinsic_local >= 0
+        self.intrinsics_key = int(intrinsics_key)
+        self.keys = self.point_keys + self.pose_keys + self.extrinsic_keys + [self.intrinsics_key]
         self._shared: _SharedEvaluation | None = None
         self._index = 0
         self._alone: _SharedEvaluation | None = None
@@ -368,15 +473,18 @@ class ObservationBlock:
 
     def state(self, values: gtsam.Values):
         """Camera-frame points (n,3), rotations R_wc (n,3,3) and theta from ``values``."""
-        T = np.array([values.atPose3(k).matrix() for k in self.pose_keys])
-        R = T[self.pose_local, :3, :3]
-        t = T[self.pose_local, :3, 3]
+        T = np.array([values.atPose3(k).matrix() for k in self.pose_keys])[self.pose_local]
+        if self.extrinsic_keys:
+            E = np.array([values.atPose3(k).matrix() for k in self.extrinsic_keys])
+            T[self.composed] = T[self.composed] @ E[self.extrinsic_local[self.composed]]
+        R = T[:, :3, :3]
+        t = T[:, :3, 3]
         pw = self.fixed_xyz.copy()
         if self.point_keys:
             P = np.array([values.atPoint3(k) for k in self.point_keys])
             pw[self.free] = P[self.point_local[self.free]]
         pc = np.einsum("nji,nj->ni", R, pw - t)
-        return pc, R, values.atVector(INTRINSICS_KEY)
+        return pc, R, values.atVector(self.intrinsics_key)
 
     def residuals_px(self, values: gtsam.Values) -> np.ndarray:
         """Unweighted residuals ``measured - predicted`` (n, 2) px."""
@@ -589,6 +697,15 @@ class BundleProblem:
         targets by at most ``IMAGES_PER_FACTOR`` images, :func:`_tile_observations`).
     radial_names : tuple of str or None
         Radial-mapping coefficients estimated (``Model.RADIAL``); None: sphere mapping.
+    image_pose_keys : ndarray of int, shape (n_images,), optional
+        Key of each image's pose variable; default ``pose_key(i)``. In a rig graph a
+        framed image's key is its frame's ``world_from_rig``
+        (:func:`frame_key`).
+    image_extrinsic_keys : ndarray of int, shape (n_images,), optional
+        Key of each image's ``rig_from_cam`` (:func:`extrinsics_key`), composed after
+        its pose, or -1 for none (default: none).
+    intrinsics_key : int
+        Key of the intrinsics vector.
     radial_warp : float or None
         Fixed warp ``w`` of the radial mapping (from the initialisation); None: none.
     """
@@ -608,6 +725,9 @@ class BundleProblem:
     fixed_intrinsics: np.ndarray | None = None
     radial_names: tuple[str, ...] | None = None
     radial_warp: float | None = None
+    image_pose_keys: np.ndarray | None = None
+    image_extrinsic_keys: np.ndarray | None = None
+    intrinsics_key: int = INTRINSICS_KEY
 
     def __post_init__(self):
         if self.corrections_px is None:
@@ -659,11 +779,26 @@ class BundleProblem:
             groups += [free_idx[t] for t in tiles]
         return groups
 
+    def image_keys(self) -> tuple[np.ndarray, np.ndarray]:
+        """Pose key and extrinsic key (-1: none) of every image, (n_images,) each."""
+        poses = self.image_pose_keys
+        if poses is None:
+            poses = np.array([pose_key(i) for i in range(self.n_images)], np.int64)
+        ext = self.image_extrinsic_keys
+        if ext is None:
+            ext = np.full(self.n_images, -1, np.int64)
+        return np.asarray(poses, np.int64), np.asarray(ext, np.int64)
+
     def _make_blocks(self) -> list[ObservationBlock]:
         uv = self.corrected_uv_px
+        image_pose, image_ext = self.image_keys()
         blocks = []
         for idx in self.block_obs:
-            images = np.unique(self.obs_image[idx])
+            obs_pose = image_pose[self.obs_image[idx]]
+            obs_ext = image_ext[self.obs_image[idx]]
+            poses = np.unique(obs_pose)
+            exts = np.unique(obs_ext[obs_ext >= 0])
+            ext_local = np.where(obs_ext >= 0, np.searchsorted(exts, obs_ext), -1)
             tgt = self.obs_target[idx]
             free = ~self.fixed[tgt]
             points = np.unique(tgt[free])
@@ -671,9 +806,9 @@ class BundleProblem:
             point_local[free] = np.searchsorted(points, tgt[free])
             blocks.append(
                 ObservationBlock(
-                    [pose_key(i) for i in images],
+                    poses.tolist(),
                     [point_key(t) for t in points],
-                    np.searchsorted(images, self.obs_image[idx]),
+                    np.searchsorted(poses, obs_pose),
                     point_local,
                     self.target_xyz[tgt],
                     uv[idx],
@@ -681,19 +816,31 @@ class BundleProblem:
                     self.brown_scale_px,
                     self.noise,
                     self.radial_names,
-                    self.radial_warp,
+                    exts.tolist(),
+                    ext_local,
+                    self.intrinsics_key,
+                    radial_warp=self.radial_warp,
                 )
             )
         ObservationBlock.share_evaluation(blocks)
         return blocks
 
-    def build(self) -> gtsam.NonlinearFactorGraph:
-        """Build the graph: observation blocks, target priors and the datum."""
+    def observation_factors(self) -> list[gtsam.CustomFactor]:
+        """(Re)build the observation blocks (``self.blocks``) and return their factors."""
         self.block_obs = self._groups()
         self.blocks = self._make_blocks()
+        return [b.factor() for b in self.blocks]
+
+    def build(self) -> gtsam.NonlinearFactorGraph:
+        """Build the graph: observation blocks, target priors and the datum."""
         graph = gtsam.NonlinearFactorGraph()
-        for b in self.blocks:
-            graph.add(b.factor())
+        for f in self.observation_factors():
+            graph.add(f)
+        self.add_priors(graph)
+        return graph
+
+    def add_priors(self, graph: gtsam.NonlinearFactorGraph) -> None:
+        """Add the target priors, the datum and a fixed-intrinsics prior to ``graph``."""
         sig = self.target_sigma
         for t in self.free_targets:
             if np.isfinite(sig[t]) and sig[t] > 0:
@@ -707,7 +854,7 @@ class BundleProblem:
         if self.fixed_intrinsics is not None:
             theta = np.asarray(self.fixed_intrinsics, float)
             noise = gtsam.noiseModel.Isotropic.Sigma(len(theta), 1e-9)
-            graph.add(gtsam.PriorFactorVector(INTRINSICS_KEY, theta, noise))
+            graph.add(gtsam.PriorFactorVector(self.intrinsics_key, theta, noise))
         if self.datum is Datum.FREE:
             xyz = self.target_xyz[self.free_targets]
             extent = float(np.linalg.norm(xyz.max(0) - xyz.min(0))) or 1.0
@@ -725,7 +872,6 @@ class BundleProblem:
             normal /= np.linalg.norm(normal)
             self._datum_factor = NormalOffsetFactor(point_key(tc), normal, self.target_xyz[tc], sd)
             graph.add(self._datum_factor.factor())
-        return graph
 
     def n_datum_constraints(self) -> int:
         """Constraints that only fix the datum (7 for a free network, else 0)."""

@@ -1,7 +1,7 @@
-"""Rig calibration, first version: each camera alone, then averaged extrinsics.
+"""Rig calibration: each camera alone, averaged extrinsics, then the joint adjustment.
 
 A rig (``dataset@2``) is several cameras fixed to one body; images that share a
-``frame`` were taken at one rig pose. This module calibrates it in three steps:
+``frame`` were taken at one rig pose. This module calibrates it in four steps:
 
 1. every camera is calibrated alone by the single-camera pipeline
    (:func:`gtsam_sphere.estimation.calibrate.calibrate`, each camera with its own options),
@@ -17,18 +17,18 @@ A rig (``dataset@2``) is several cameras fixed to one body; images that share a
 3. ``rig_from_world`` of each frame is the same robust mean over the frame's
    cameras of ``inverse(cam_from_rig) * cam_from_world``, and every framed image
    gets ``cam_from_world = cam_from_rig * rig_from_world`` (an image without a frame
-   keeps its own pose).
+   keeps its own pose);
+4. the joint rig adjustment (:func:`.rig_joint.adjust_rig_jointly`): one graph in
+   which the frames' ``rig_from_world``, the cameras' ``cam_from_rig`` and intrinsics,
+   the unframed images' poses and the targets are variables, every observation
+   predicted through ``cam_from_rig * rig_from_world`` (each camera's kNN correction
+   from step 1 held fixed), robustly weighted (Huber) as the single-camera stages.
 
-The spread of the relative poses over the frames (rotation in degrees, translation
-in dataset units) is reported as the precision of each camera's extrinsics.
-
-This is **not** the joint rig adjustment (one graph in which the frames' rig poses
-and the cameras' ``cam_from_rig`` are variables and every observation constrains
-them together): the intrinsics of each camera come from its own adjustment, with
-one free pose per image, and the rig constraint is imposed afterwards. The output
-says so in ``statistics["rig_adjustment"]`` (:data:`RIG_ADJUSTMENT`), and
-``statistics["rms_px_rig"]`` gives the reprojection error with the rig-composed
-poses, which the joint adjustment would minimise.
+The precision of each camera's extrinsics is their marginal covariance in the joint
+graph (``gtsam.Marginals``); the spread of the relative poses of step 2 over the
+frames is kept beside it. ``statistics["rig_adjustment"]`` says which steps ran
+(:data:`RIG_ADJUSTMENT`, or :data:`RIG_ADJUSTMENT_AVERAGED` without step 4), and
+``statistics["rms_px_rig"]`` gives the reprojection error of the rig's poses.
 
 Poses follow the data contract: ``cam_from_world = (R, t)`` maps ``p_cam = R @ p_world + t``;
 ``cam_from_rig`` maps rig-frame points to the camera frame, ``rig_from_world`` world
@@ -50,11 +50,15 @@ from ..core.robust import MEDIAN_NORM_3D, Loss, robust_weight
 from ..io.calibration import Calibration, RigCalibration
 from ..io.dataset import DatasetError, RigDataset, read_json, split_rig
 from .calibrate import CalibrationOptions, calibrate
+from .optimize import OptimizerOptions
+from .rig_joint import adjust_rig_jointly, precision_from_covariance
 
 logger = logging.getLogger(__name__)
 
-#: ``statistics["rig_adjustment"]`` of this first version (no joint adjustment yet)
-RIG_ADJUSTMENT = "per-camera + averaged extrinsics"
+#: ``statistics["rig_adjustment"]`` with the joint adjustment (the default)
+RIG_ADJUSTMENT = "joint (per-camera initialisation, averaged extrinsics, one graph)"
+#: ``statistics["rig_adjustment"]`` without it (``joint=False``)
+RIG_ADJUSTMENT_AVERAGED = "per-camera + averaged extrinsics"
 #: Cauchy scale of the robust means, in robust standard deviations of the deviations
 CAUCHY_K = 3.0
 
@@ -448,10 +452,11 @@ def calibrate_rig(
     rig: RigDataset,
     options: CalibrationOptions | dict[str, CalibrationOptions] | None = None,
     progress: Callable[[str], None] | None = None,
+    joint: bool = True,
 ) -> RigCalibration:
-    """Calibrate a rig: each camera alone, then averaged ``cam_from_rig`` and ``rig_from_world``.
+    """Calibrate a rig: each camera alone, averaged extrinsics, then the joint adjustment.
 
-    Not the joint rig adjustment (see the module docstring).
+    See the module docstring for the steps.
 
     Parameters
     ----------
@@ -462,18 +467,23 @@ def calibrate_rig(
         (:func:`camera_options`); default ``CalibrationOptions()``.
     progress : callable(str), optional
         Receives progress lines (each camera's prefixed with ``[id]``).
+    joint : bool
+        Run the joint rig adjustment (default); False stops at the averaged
+        extrinsics (the first version).
 
     Returns
     -------
     RigCalibration
-        Per camera the model and its statistics (``statistics["cameras"][id]``,
-        with ``cam_from_rig_precision``), ``cam_from_rig``, per frame
-        ``rig_from_world``, per image ``cam_from_world`` (rig-composed for framed
-        images), the targets (mean over the cameras of their adjusted
-        coordinates), and whole-rig statistics: ``rms_px`` (the cameras' own
-        adjustments pooled), ``rms_px_rig`` (with the rig-composed poses and mean
-        targets), ``trusted`` / ``distrust`` (naming the camera),
-        ``rig_adjustment``.
+        Per camera the model (the jointly adjusted intrinsics) and its statistics
+        (``statistics["cameras"][id]``: the camera's own adjustment's, plus
+        ``rms_px_rig``, ``sigma_px_rig``, ``intrinsics_sigma_rig`` and
+        ``cam_from_rig_precision``), ``cam_from_rig``, per frame ``rig_from_world``,
+        per image ``cam_from_world`` (rig-composed for framed images), the targets
+        (jointly adjusted; without ``joint`` the mean over the cameras of their
+        adjusted coordinates), and whole-rig statistics: ``rms_px`` (the cameras'
+        own adjustments pooled), ``rms_px_rig`` (with the rig's poses and targets),
+        ``trusted`` / ``distrust`` (naming the camera), ``rig_adjustment``,
+        ``joint`` (the joint adjustment's status, iterations, stages, datum).
 
     Raises
     ------
@@ -490,7 +500,6 @@ def calibrate_rig(
     else:
         per_camera = {cid: options.get(cid, CalibrationOptions()) for cid in ids}
     datasets = split_rig(rig)
-    frame_of = dict(zip(rig.image_ids, rig.image_frame))
     # before hours of work: are the cameras linked by shared frames at all?
     check_rig_connected(
         ids,
@@ -524,6 +533,37 @@ def calibrate_rig(
             f"cannot be: {lines}"
         ) from failures[0][1]
 
+    return assemble_rig(rig, calibs, per_camera, say, joint)
+
+
+def assemble_rig(
+    rig: RigDataset,
+    calibs: dict[str, Calibration],
+    options: dict[str, CalibrationOptions],
+    say: Callable[[str], None],
+    joint: bool = True,
+) -> RigCalibration:
+    """Steps 2-4 of the rig calibration from the cameras' own calibrations.
+
+    Parameters
+    ----------
+    rig : RigDataset
+    calibs : dict of str -> Calibration
+        Every camera's own calibration (:func:`calibrate` on :func:`split_rig`'s part).
+    options : dict of str -> CalibrationOptions
+        Per camera (the joint adjustment takes the optimiser, the loss threshold and
+        ``fixed_intrinsics`` from them).
+    say : callable(str)
+    joint : bool
+        Run the joint adjustment (step 4); False stops at the averaged extrinsics.
+
+    Returns
+    -------
+    RigCalibration
+        As :func:`calibrate_rig`.
+    """
+    ids = rig.camera_ids
+    frame_of = dict(zip(rig.image_ids, rig.image_frame))
     poses = {cid: _framed_poses(calibs[cid], frame_of) for cid in ids}
     cam_from_rig, precision = place_cameras(ids, poses, say)
 
@@ -552,6 +592,59 @@ def calibrate_rig(
     target_ids = [tid for tid in rig.target_ids if tid in sums]
     xyz_of = {tid: sums[tid] / counts[tid] for tid in target_ids}
 
+    adjustment = RIG_ADJUSTMENT_AVERAGED
+    jr = None
+    cameras = {c: calibs[c].camera for c in ids}
+    if joint:
+        first = options[ids[0]]
+        fixed = {
+            c: np.asarray(options[c].fixed_intrinsics, float)
+            for c in ids
+            if options[c].fixed_intrinsics is not None
+        }
+        jr = adjust_rig_jointly(
+            rig,
+            calibs,
+            cam_from_rig,
+            {f: (rig_R[k], rig_t[k]) for f, k in frame_index.items()},
+            xyz_of,
+            OptimizerOptions(first.optimizer, first.max_iterations),
+            say,
+            loss_threshold=first.loss_threshold,
+            points_per_factor=first.points_per_factor,
+            fixed_intrinsics=fixed,
+        )
+        adjustment = RIG_ADJUSTMENT
+        for cid in ids[1:]:
+            precision[cid]["cam_from_rig_averaged"] = {
+                "R": cam_from_rig[cid][0],
+                "t": cam_from_rig[cid][1],
+            }
+            # the spread's standard error stays, renamed: it ignores the intrinsics
+            for key in ("rotation_sigma_deg", "translation_sigma"):
+                precision[cid][f"{key}_spread"] = precision[cid].pop(key, None)
+        cam_from_rig = jr.cam_from_rig
+        rig_R = [jr.rig_from_world[f][0] for f in frame_ids]
+        rig_t = [jr.rig_from_world[f][1] for f in frame_ids]
+        xyz_of = {tid: jr.target_xyz.get(tid, xyz_of[tid]) for tid in target_ids}
+        cameras = jr.cameras
+        for cid in ids[1:]:
+            cov = jr.cam_from_rig_covariance[cid]
+            if cov is None:
+                precision[cid].update(rotation_sigma_deg=None, translation_sigma=None)
+            else:
+                precision[cid].update(precision_from_covariance(cov, cam_from_rig[cid][1]))
+            precision[cid]["sigma_source"] = "marginal covariance of the joint adjustment"
+            R, t = cam_from_rig[cid]
+            pr = precision[cid]
+            if pr.get("rotation_sigma_deg") is not None:
+                say(
+                    f"camera {cid}: joint cam_from_rig angle "
+                    f"{np.degrees(rotation_angle(R)):.4f} deg, |t| {np.linalg.norm(t):.6g} "
+                    f"+- {pr['rotation_sigma_deg']:.4f} deg, {pr['baseline_sigma']:.3g} "
+                    "(dataset units)"
+                )
+
     image_ids, image_camera, image_frame, R_all, t_all = [], [], [], [], []
     camera_stats: dict[str, dict] = {}
     camera_results: dict[str, dict] = {}
@@ -561,7 +654,9 @@ def calibrate_rig(
         R_cam, t_cam = [], []
         for iid, R, t in zip(calib.image_ids, calib.cam_from_world_R, calib.cam_from_world_t):
             frame = frame_of.get(iid)
-            if frame is not None:
+            if jr is not None:
+                R, t = jr.cam_from_world[iid]
+            elif frame is not None:
                 f = frame_index[frame]
                 R, t = compose(cam_from_rig[cid], (rig_R[f], rig_t[f]))
             image_ids.append(iid)
@@ -572,13 +667,22 @@ def calibrate_rig(
         R_cam, t_cam = np.array(R_cam), np.array(t_cam)
         R_all.append(R_cam)
         t_all.append(t_cam)
-        res_rig = _rig_residuals(calib, calib.camera, R_cam, t_cam, xyz_of)
+        if jr is not None:
+            res_rig = jr.residuals_px[cid]
+        else:
+            res_rig = _rig_residuals(calib, calib.camera, R_cam, t_cam, xyz_of)
         res_rig_all.append(res_rig)
         stats = dict(calib.statistics)
         stats["model"] = calib.model
         stats["rms_px_rig"] = _rms(res_rig)
         stats["n_observations_rig"] = int(np.isfinite(res_rig).all(axis=1).sum())
         stats["cam_from_rig_precision"] = precision[cid]
+        if jr is not None:
+            # the file's intrinsics are the joint ones; the rest of the statistics are
+            # the camera's own adjustment's
+            stats["sigma_px_rig"] = jr.sigma_px[cid]
+            stats["intrinsics_sigma_rig"] = jr.intrinsics_sigma[cid]
+            stats["intrinsics_own"] = calib.camera.to_dict()
         camera_stats[cid] = stats
         camera_results[cid] = calib.extra
 
@@ -589,8 +693,15 @@ def calibrate_rig(
         for cid in ids
         for reason in calibs[cid].statistics.get("distrust", [])
     ]
+    if jr is not None and not jr.result.converged:
+        distrust.append(f"the joint rig adjustment did not converge ({jr.result.status})")
+    if jr is not None and any(jr.cam_from_rig_covariance[c] is None for c in ids[1:]):
+        distrust.append(
+            "the joint rig adjustment's normal equations are singular: the precision of "
+            "cam_from_rig is unknown"
+        )
     statistics = {
-        "rig_adjustment": RIG_ADJUSTMENT,
+        "rig_adjustment": adjustment,
         "rms_px": float(np.sqrt(np.sum(n_obs * rms**2) / np.sum(n_obs))),
         "rms_px_rig": _rms(np.concatenate(res_rig_all)),
         "n_observations": int(n_obs.sum()),
@@ -599,7 +710,8 @@ def calibrate_rig(
         "n_frames": len(frame_ids),
         "n_images": len(image_ids),
         "n_images_skipped": int(sum(calibs[c].statistics["n_images_skipped"] for c in ids)),
-        "converged": all(calibs[c].statistics["converged"] for c in ids),
+        "converged": all(calibs[c].statistics["converged"] for c in ids)
+        and (jr is None or jr.result.converged),
         "trusted": not distrust,
         "distrust": distrust,
         "untrusted_cameras": [c for c in ids if not calibs[c].statistics.get("trusted", True)],
@@ -608,7 +720,8 @@ def calibrate_rig(
             f"{precision[c]['parent']!r}; its precision is unknown"
             for c in ids
             if precision[c].get("parent") is not None and precision[c]["n_frames"] < 2
-        ],
+        ]
+        + [f"the joint rig adjustment: {note}" for note in (jr.notes if jr else [])],
         "frame_spread_rotation_deg_median": float(
             np.median([s["rotation_spread_deg"] for s in frame_spread])
         )
@@ -616,9 +729,21 @@ def calibrate_rig(
         else None,
         "cameras": camera_stats,
     }
+    if jr is not None:
+        statistics["joint"] = {
+            "status": jr.result.status,
+            "converged": bool(jr.result.converged),
+            "iterations": int(jr.result.history[-1]["iteration"]),
+            "stages": jr.stages,
+            "cost": float(jr.result.history[-1]["cost"]),
+            "datum": jr.datum,
+            "loss": "huber",
+            "variance_factor": jr.variance_factor,
+            "redundancy": jr.redundancy,
+        }
     return RigCalibration(
         camera_ids=list(ids),
-        cameras={c: calibs[c].camera for c in ids},
+        cameras=cameras,
         models={c: calibs[c].model for c in ids},
         cam_from_rig=cam_from_rig,
         frame_ids=frame_ids,
@@ -690,7 +815,7 @@ def run_cli(args, base: CalibrationOptions, progress: Callable[[str], None] | No
     st = calib.statistics
     print(
         f"{args.output}: rig of {len(calib.camera_ids)} cameras, {st['n_frames']} frames "
-        f"({st['rig_adjustment']}, not yet a joint rig adjustment)"
+        f"({st['rig_adjustment']})"
     )
     print(
         f"  RMS (px) {st['rms_px']:.4f} in the cameras' own adjustments, "
@@ -712,6 +837,11 @@ def run_cli(args, base: CalibrationOptions, progress: Callable[[str], None] | No
                 f"shared with {pr['parent']} (spread {_fmt(pr['rotation_spread_deg'])} deg, "
                 f"{_fmt(pr['translation_spread_norm'])} {calib.units})"
             )
+            if pr.get("baseline_sigma") is not None:
+                line += (
+                    f"; sigma {_fmt(pr['rotation_sigma_deg'])} deg, |t| "
+                    f"{_fmt(pr['baseline_sigma'])} {calib.units} (joint adjustment)"
+                )
         print(line)
     for reason in st["distrust"]:
         print(f"warning: do not trust this result: {reason}", file=sys.stderr)

@@ -1,0 +1,512 @@
+"""Joint rig adjustment: one graph for every camera of a rig.
+
+The stage after the per-camera initialisation of :mod:`.rig` (each camera calibrated
+alone, ``cam_from_rig`` averaged over the shared frames). Variables
+(GTSAM's pose convention, as the single-camera graph: ``docs/conventions.md``):
+
+- ``f{k}``: ``world_from_rig`` of frame ``k`` (``Pose3``, the inverse of the file's
+  ``rig_from_world``);
+- ``e{c}``: ``rig_from_cam`` of camera ``c >= 1`` (the inverse of ``cam_from_rig``); the
+  first camera defines the rig frame and has no variable (the identity);
+- ``x{i}``: ``world_from_cam`` of an image without a frame (a pose of its own);
+- ``l{j}``: the targets, with the single-camera graph's priors and datum
+  (:meth:`BundleProblem.add_priors`);
+- ``k{c}``: camera ``c``'s intrinsics, in its own model's layout.
+
+An observation of camera ``c`` in frame ``k`` is predicted with ``world_from_cam =
+world_from_rig_k * rig_from_cam_c`` (:class:`ObservationBlock` with an extrinsic key);
+its measurement is corrected by the camera's kNN field from the per-camera stage, held
+fixed here. The observations of each camera form one vectorised set of blocks.
+
+Robust weighting as in the single-camera stages: Huber per observation, the scale
+``sigma_px`` of each camera re-estimated from its residuals (``median / sqrt(2 ln 2)``)
+until it changes by less than 5%. The precision of ``cam_from_rig`` is its marginal
+covariance (``gtsam.Marginals``) in the final, robustly weighted graph, times the
+a-posteriori variance factor when that exceeds 1 (the robust scale, from the median,
+underestimates the spread of heavy-tailed residuals). On an in-model simulated rig
+the errors it predicts match the true ones (RMS of the normalised errors 1.05 over 12
+seeds, ``tests/test_rig_joint.py``); on the simulator's stereo rig (its lenses outside
+the package's models, model ``radial``) 1.20 over 10 seeds, every error within 3 sigma,
+and the joint stage lowered the mean error of ``cam_from_rig`` from 0.0144 to 0.0107 deg
+and from 0.59 to 0.32 mm against the averaged extrinsics.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+
+import gtsam
+import numpy as np
+
+from ..core.camera import WARP_TERM, SphereCamera
+from ..core.geometry import fit_similarity
+from ..io.calibration import Calibration
+from ..io.dataset import RigDataset
+from .graph import (
+    BundleProblem,
+    Datum,
+    Loss,
+    NoiseOptions,
+    extrinsics_key,
+    frame_key,
+    intrinsics_key,
+    point_key,
+    pose_key,
+    robust_sigma_px,
+    robust_weight,
+)
+from .optimize import OptimizationResult, OptimizerOptions, make_ordering, optimize
+
+Pose = tuple[np.ndarray, np.ndarray]
+
+#: robust stages (Huber, each camera's sigma re-estimated) at most
+MAX_STAGES = 4
+#: smallest robust scale, px (as the single-camera stages)
+MIN_SIGMA_PX = 0.005
+
+
+def _gtsam_pose(pose: Pose) -> gtsam.Pose3:
+    return gtsam.Pose3(gtsam.Rot3(np.asarray(pose[0], float)), np.asarray(pose[1], float))
+
+
+def _pose(p: gtsam.Pose3) -> Pose:
+    return np.asarray(p.rotation().matrix()), np.asarray(p.translation())
+
+
+def theta_of(camera: SphereCamera) -> tuple[np.ndarray, tuple[str, ...] | None, tuple[str, ...]]:
+    """The intrinsics vector of ``camera`` in the graph's layout, its radial and Brown names
+    (the radial mapping's fixed warp ``w`` is not in the vector: :func:`warp_of`)."""
+    radial_names = (
+        None if camera.radial is None else tuple(n for n in camera.radial if n != WARP_TERM)
+    )
+    brown_names = tuple(camera.brown)
+    theta = [camera.xp, camera.yp, camera.c]
+    theta += [camera.radial[n] for n in radial_names or ()]
+    theta += [camera.brown[n] for n in brown_names]
+    return np.asarray(theta, float), radial_names, brown_names
+
+
+def camera_with_theta(camera: SphereCamera, theta: np.ndarray) -> SphereCamera:
+    """``camera`` with the intrinsics ``theta`` (same layout as :func:`theta_of`)."""
+    _, radial_names, brown_names = theta_of(camera)
+    g = len(radial_names or ())
+    radial = None
+    if radial_names is not None:
+        radial = dict(zip(radial_names, map(float, theta[3 : 3 + g])))
+        if warp_of(camera) is not None:
+            radial[WARP_TERM] = warp_of(camera)
+    return replace(
+        camera,
+        xp=float(theta[0]),
+        yp=float(theta[1]),
+        c=float(theta[2]),
+        radial=radial,
+        brown=dict(zip(brown_names, map(float, theta[3 + g :]))),
+    )
+
+
+def warp_of(camera: SphereCamera) -> float | None:
+    """The fixed warp ``w`` of ``camera``'s radial mapping, or None."""
+    if camera.radial is None or WARP_TERM not in camera.radial:
+        return None
+    return float(camera.radial[WARP_TERM])
+
+
+def cam_from_rig_covariance(rig_from_cam: gtsam.Pose3, cov: np.ndarray) -> np.ndarray:
+    """Covariance of ``cam_from_rig`` from that of its inverse's right perturbation.
+
+    ``rig_from_cam * exp([w, v])`` is ``exp(-[w, v]) * cam_from_rig``: to first order
+    the rotation of ``cam_from_rig = (R, t)`` turns by ``-w`` (camera axes) and ``t``
+    moves by ``[t]x w - v``.
+
+    Returns
+    -------
+    ndarray, shape (6, 6)
+        Covariance of ``[rotation (rad, camera axes), t (dataset units)]``.
+    """
+    t = -rig_from_cam.rotation().matrix().T @ rig_from_cam.translation()  # cam_from_rig t
+    tx = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
+    J = np.block([[-np.eye(3), np.zeros((3, 3))], [tx, -np.eye(3)]])
+    return J @ cov @ J.T
+
+
+@dataclass
+class JointRigResult:
+    """Outcome of :func:`adjust_rig_jointly` (poses in the files' convention).
+
+    Attributes
+    ----------
+    cam_from_rig : dict of str -> (R, t)
+    rig_from_world : dict of str -> (R, t)
+        Per frame id.
+    cam_from_world : dict of str -> (R, t)
+        Per image id (framed images: ``cam_from_rig * rig_from_world``).
+    target_xyz : dict of str -> ndarray (3,)
+    cameras : dict of str -> SphereCamera
+        The jointly adjusted intrinsics, each with its camera's kNN correction.
+    residuals_px : dict of str -> ndarray (N_c, 2)
+        Raw-pixel residuals of each camera's observations (its calibration's order).
+    weights : dict of str -> ndarray (N_c,)
+        Final robust weights.
+    sigma_px : dict of str -> float
+        Final robust scale per camera (corrected coordinates).
+    cam_from_rig_covariance : dict of str -> ndarray (6, 6) or None
+        Marginal covariance of ``[rotation (rad, camera axes), t]`` of each camera but
+        the first, times ``max(1, variance_factor)``; None when the system is singular.
+    intrinsics_sigma : dict of str -> dict or None
+    result : OptimizationResult
+        Of the last stage; ``history`` spans every stage.
+    stages : int
+        Robust stages run.
+    datum : str
+        ``"control"`` or ``"free"`` (:class:`Datum`).
+    variance_factor : float
+        A-posteriori variance factor ``sum(w (e / sigma)^2) / redundancy``.
+    redundancy : int
+        ``2 N + 3 (weighted targets) + 7 (free network) - unknowns``.
+    notes : list of str
+        What the adjustment left out or could not compute (no covariance).
+    """
+
+    cam_from_rig: dict[str, Pose]
+    rig_from_world: dict[str, Pose]
+    cam_from_world: dict[str, Pose]
+    target_xyz: dict[str, np.ndarray]
+    cameras: dict[str, SphereCamera]
+    residuals_px: dict[str, np.ndarray]
+    weights: dict[str, np.ndarray]
+    sigma_px: dict[str, float]
+    cam_from_rig_covariance: dict[str, np.ndarray | None]
+    intrinsics_sigma: dict[str, dict | None]
+    result: OptimizationResult
+    stages: int = 0
+    datum: str = ""
+    variance_factor: float = float("nan")
+    redundancy: int = 0
+    notes: list[str] = field(default_factory=list)
+
+
+def precision_from_covariance(cov: np.ndarray, t: np.ndarray) -> dict:
+    """Standard deviations of ``cam_from_rig`` from its covariance (:class:`JointRigResult`).
+
+    Returns
+    -------
+    dict
+        ``rotation_sigma_deg`` (the RMS length of the 3-D rotation error, deg),
+        ``rotation_sigma_deg_axes`` (3,) (about the camera's axes), ``translation_sigma``
+        (3,) (dataset units), ``baseline_sigma`` (of ``|t|``), ``covariance`` (6, 6).
+    """
+    var_rot = np.diag(cov)[:3]
+    u = t / max(float(np.linalg.norm(t)), 1e-300)
+    return {
+        "rotation_sigma_deg": float(np.degrees(np.sqrt(np.sum(var_rot)))),
+        "rotation_sigma_deg_axes": np.degrees(np.sqrt(var_rot)),
+        "translation_sigma": np.sqrt(np.diag(cov)[3:]),
+        "baseline_sigma": float(np.sqrt(u @ cov[3:, 3:] @ u)),
+        "covariance": cov,
+    }
+
+
+def adjust_rig_jointly(
+    rig: RigDataset,
+    calibs: dict[str, Calibration],
+    cam_from_rig: dict[str, Pose],
+    rig_from_world: dict[str, Pose],
+    target_xyz: dict[str, np.ndarray],
+    optimizer: OptimizerOptions | None = None,
+    say: Callable[[str], None] | None = None,
+    loss_threshold: float = 2.45,
+    points_per_factor: int = 8,
+    fixed_intrinsics: dict[str, np.ndarray] | None = None,
+) -> JointRigResult:
+    """Adjust a rig's frames, extrinsics, intrinsics and targets in one graph.
+
+    Parameters
+    ----------
+    rig : RigDataset
+    calibs : dict of str -> Calibration
+        Each camera's own calibration (model, kNN correction, kept observations in
+        ``extra["observations"]``, ``sigma_px``, ``control_sigma``, image poses).
+    cam_from_rig, rig_from_world, target_xyz :
+        The starting values (the averaged ones of :mod:`.rig`); every frame of a
+        calibrated image must be in ``rig_from_world``.
+    optimizer : OptimizerOptions
+    say : callable(str)
+    loss_threshold : float
+        Huber threshold in units of each camera's sigma.
+    points_per_factor : int
+    fixed_intrinsics : dict of str -> ndarray, optional
+        Cameras whose intrinsics are held (a tight prior), as ``fixed_intrinsics``.
+
+    Returns
+    -------
+    JointRigResult
+    """
+    say = say or (lambda _line: None)
+    optimizer = optimizer or OptimizerOptions()
+    ids = rig.camera_ids
+    frame_of = dict(zip(rig.image_ids, rig.image_frame))
+    t_index = {tid: j for j, tid in enumerate(rig.target_ids)}
+    frames = list(rig_from_world)
+    f_index = {f: k for k, f in enumerate(frames)}
+
+    # target priors: the dataset's sigma; exact targets get the cameras' control sigma
+    sigma = np.asarray(rig.target_sigma, float).copy()
+    control = [calibs[c].statistics.get("control_sigma") for c in ids]
+    control = [float(s) for s in control if s is not None]
+    if control:
+        sigma = np.where(sigma == 0, float(np.median(control)), sigma)
+
+    values = gtsam.Values()
+    for f, k in f_index.items():
+        values.insert(frame_key(k), _gtsam_pose(rig_from_world[f]).inverse())
+    for c, cid in enumerate(ids):
+        if c > 0:
+            values.insert(extrinsics_key(c), _gtsam_pose(cam_from_rig[cid]).inverse())
+
+    problems: dict[str, BundleProblem] = {}
+    raw_uv: dict[str, np.ndarray] = {}
+    kept: dict[str, np.ndarray] = {}
+    all_targets, own_poses = [], []
+    image_global = {iid: g for g, iid in enumerate(rig.image_ids)}
+    # targets without a sigma seen in fewer than two images (of any camera) are not
+    # determined: their observations stay out of the graph
+    n_views = np.zeros(len(rig.target_ids), int)
+    pairs = {
+        (image_global[i], t_index[tg])
+        for cid in ids
+        for i, tg in zip(
+            calibs[cid].extra["observations"]["image"], calibs[cid].extra["observations"]["target"]
+        )
+    }
+    for _, j in pairs:
+        n_views[j] += 1
+    undetermined = ~np.isfinite(sigma) & (n_views < 2)
+    for c, cid in enumerate(ids):
+        calib = calibs[cid]
+        obs = calib.extra["observations"]
+        local = {iid: k for k, iid in enumerate(calib.image_ids)}
+        obs_target = np.array([t_index[tg] for tg in obs["target"]], int)
+        keep = ~undetermined[obs_target]
+        kept[cid] = keep
+        obs_target = obs_target[keep]
+        obs_image = np.array([local[i] for i in obs["image"]], int)[keep]
+        uv = np.asarray(obs["uv_px"], float).reshape(-1, 2)[keep]
+        camera = calib.camera
+        corr = np.zeros_like(uv)
+        if camera.correction is not None and len(uv):
+            corr = np.asarray(camera.correction.predict(uv), float)
+        pose_keys, ext_keys = [], []
+        for iid, R, t in zip(calib.image_ids, calib.cam_from_world_R, calib.cam_from_world_t):
+            f = frame_of.get(iid)
+            if f is None:
+                key = pose_key(image_global[iid])
+                own_poses.append(key)
+                values.insert(key, _gtsam_pose((R, t)).inverse())
+                pose_keys.append(key)
+                ext_keys.append(-1)
+            else:
+                pose_keys.append(frame_key(f_index[f]))
+                ext_keys.append(extrinsics_key(c) if c > 0 else -1)
+        theta, radial_names, brown_names = theta_of(camera)
+        values.insert(intrinsics_key(c), theta)
+        problems[cid] = BundleProblem(
+            obs_image=obs_image,
+            obs_target=obs_target,
+            uv_px=uv,
+            target_xyz=np.asarray(rig.target_xyz, float),
+            target_sigma=sigma,
+            n_images=len(calib.image_ids),
+            brown_names=brown_names,
+            brown_scale_px=camera.brown_scale_px,
+            noise=NoiseOptions(
+                float(calib.statistics.get("sigma_px", 1.0)), Loss.HUBER, loss_threshold
+            ),
+            points_per_factor=points_per_factor,
+            corrections_px=corr,
+            radial_names=radial_names,
+            radial_warp=warp_of(camera),
+            image_pose_keys=np.array(pose_keys, np.int64),
+            image_extrinsic_keys=np.array(ext_keys, np.int64),
+            intrinsics_key=intrinsics_key(c),
+        )
+        raw_uv[cid] = uv
+        all_targets.append(obs_target)
+
+    # priors and datum once for the whole rig (the single-camera graph's rules)
+    obs_target = np.concatenate(all_targets)
+    datum_problem = BundleProblem(
+        obs_image=np.zeros(len(obs_target), int),
+        obs_target=obs_target,
+        uv_px=np.zeros((len(obs_target), 2)),
+        target_xyz=np.asarray(rig.target_xyz, float),
+        target_sigma=sigma,
+        n_images=1,
+    )
+    free = datum_problem.free_targets
+    xyz0 = np.asarray(rig.target_xyz, float).copy()
+    for j in free:
+        xyz0[j] = target_xyz.get(rig.target_ids[j], xyz0[j])
+        values.insert(point_key(int(j)), np.asarray(xyz0[j], float))
+
+    def build() -> gtsam.NonlinearFactorGraph:
+        graph = gtsam.NonlinearFactorGraph()
+        for p in problems.values():
+            for factor in p.observation_factors():
+                graph.add(factor)
+        datum_problem.add_priors(graph)
+        for c, cid in enumerate(ids):
+            if fixed_intrinsics and cid in fixed_intrinsics:
+                theta = np.asarray(fixed_intrinsics[cid], float)
+                noise = gtsam.noiseModel.Isotropic.Sigma(len(theta), 1e-9)
+                graph.add(gtsam.PriorFactorVector(intrinsics_key(c), theta, noise))
+        return graph
+
+    ordering = make_ordering(
+        [point_key(int(j)) for j in free],
+        [frame_key(k) for k in range(len(frames))] + own_poses,
+        [extrinsics_key(c) for c in range(1, len(ids))]
+        + [intrinsics_key(c) for c in range(len(ids))],
+    )
+    notes: list[str] = []
+    if undetermined.any():
+        notes.append(
+            f"{int(undetermined.sum())} targets without a sigma seen in one image only "
+            "left out (not determined)"
+        )
+    say(
+        f"joint rig adjustment: {len(frames)} frames, {len(own_poses)} unframed images, "
+        f"{len(free)} free targets, {len(obs_target)} observations, datum "
+        f"{datum_problem.datum.value}"
+    )
+    history: list[dict] = []
+    result = None
+    stage = 0
+
+    for stage in range(1, MAX_STAGES + 1):
+        graph = build()
+        start = values if result is None else result.values
+        result = optimize(graph, start, optimizer, ordering, say, "[rig] ")
+        offset = history[-1]["iteration"] + 1 if history else 0
+        history += [dict(h, iteration=h["iteration"] + offset, stage=stage) for h in result.history]
+        changed = False
+        for p in problems.values():
+            r = np.linalg.norm(p.residuals_px(result.values), axis=1)
+            new = robust_sigma_px(r, MIN_SIGMA_PX)
+            old = p.noise.sigma_px
+            changed |= abs(new - old) > 0.05 * old
+            p.noise = NoiseOptions(new, Loss.HUBER, loss_threshold)
+        say(
+            "[rig] robust scale per camera: "
+            + ", ".join(f"{cid} {p.noise.sigma_px:.4f} px" for cid, p in problems.items())
+        )
+        if not changed:
+            break
+    result.history = history
+    final = result.values
+
+    # precision: the final, robustly weighted graph at the solution, scaled by the
+    # a-posteriori variance factor when it exceeds 1 (errors the model does not hold)
+    graph = build()
+    weighted_ss = 0.0
+    for p in problems.values():
+        r = np.linalg.norm(p.residuals_px(final), axis=1) / p.noise.sigma_px
+        w, _ = robust_weight(r, Loss.HUBER, loss_threshold)
+        weighted_ss += float(np.sum(w * r * r))
+    sig_free = sigma[free]
+    n_priors = int(np.sum(np.isfinite(sig_free) & (sig_free > 0)))
+    n_theta = sum(
+        len(p.intrinsics_names())
+        for cid, p in problems.items()
+        if not (fixed_intrinsics and cid in fixed_intrinsics)
+    )
+    n_unknowns = 6 * (len(frames) + len(own_poses) + len(ids) - 1) + 3 * len(free) + n_theta
+    redundancy = (
+        2 * len(obs_target) + 3 * n_priors + datum_problem.n_datum_constraints() - n_unknowns
+    )
+    variance_factor = weighted_ss / max(redundancy, 1)
+    inflate = max(1.0, variance_factor)
+    cov_ext: dict[str, np.ndarray | None] = dict.fromkeys(ids[1:])
+    int_sigma: dict[str, dict | None] = dict.fromkeys(ids)
+    try:
+        marginals = gtsam.Marginals(graph, final)
+        for c, cid in enumerate(ids):
+            names = problems[cid].intrinsics_names()
+            cov = inflate * marginals.marginalCovariance(intrinsics_key(c))
+            int_sigma[cid] = dict(zip(names, map(float, np.sqrt(np.diag(cov)))))
+            if c > 0:
+                cov = inflate * np.asarray(marginals.marginalCovariance(extrinsics_key(c)))
+                cov_ext[cid] = cam_from_rig_covariance(final.atPose3(extrinsics_key(c)), cov)
+    except RuntimeError as exc:  # indeterminate system
+        notes.append(f"no covariance: {' '.join(str(exc).split())[:200]}")
+
+    # results, in the files' convention
+    xyz = np.asarray(rig.target_xyz, float).copy()
+    for j in free:
+        xyz[j] = final.atPoint3(point_key(int(j)))
+    rig_R = np.array([_pose(final.atPose3(frame_key(k)).inverse())[0] for k in range(len(frames))])
+    rig_t = np.array([_pose(final.atPose3(frame_key(k)).inverse())[1] for k in range(len(frames))])
+    ext = {ids[0]: (np.eye(3), np.zeros(3))}
+    for c in range(1, len(ids)):
+        ext[ids[c]] = _pose(final.atPose3(extrinsics_key(c)).inverse())
+    own = {k: _pose(final.atPose3(k).inverse()) for k in own_poses}
+    scale = 1.0
+    if datum_problem.datum is Datum.FREE:
+        # as the single-camera result: S-transformed onto the approximate coordinates
+        sim = fit_similarity(xyz[free], np.asarray(rig.target_xyz, float)[free])
+        xyz[free] = sim.apply(xyz[free])
+        rig_R, rig_t = sim.apply_to_cam_from_world(rig_R.reshape(-1, 3, 3), rig_t.reshape(-1, 3))
+        for k, (R, t) in own.items():
+            R2, t2 = sim.apply_to_cam_from_world(R[None], t[None])
+            own[k] = (R2[0], t2[0])
+        scale = sim.scale
+        ext = {cid: (R, scale * t) for cid, (R, t) in ext.items()}
+        cov_ext = {
+            cid: None
+            if cov is None
+            else cov * np.repeat([1.0, scale], 3)[:, None] * np.repeat([1.0, scale], 3)[None]
+            for cid, cov in cov_ext.items()
+        }
+
+    cameras, residuals, weights = {}, {}, {}
+    cam_from_world: dict[str, Pose] = {}
+    for c, cid in enumerate(ids):
+        p = problems[cid]
+        camera = camera_with_theta(calibs[cid].camera, final.atVector(intrinsics_key(c)))
+        cameras[cid] = camera
+        res_model = p.residuals_px(final)
+        res = camera.pixel_residuals(raw_uv[cid], res_model) if len(res_model) else res_model
+        keep = kept[cid]
+        residuals[cid] = np.full((len(keep), 2), np.nan)
+        residuals[cid][keep] = np.where(np.isfinite(res), res, res_model)
+        r = np.linalg.norm(res_model, axis=1) / p.noise.sigma_px
+        weights[cid] = np.zeros(len(keep))
+        weights[cid][keep] = robust_weight(r, Loss.HUBER, loss_threshold)[0]
+        calib = calibs[cid]
+        for iid in calib.image_ids:
+            f = frame_of.get(iid)
+            if f is None:
+                cam_from_world[iid] = own[pose_key(image_global[iid])]
+            else:
+                k = f_index[f]
+                R_c, t_c = ext[cid]
+                cam_from_world[iid] = (R_c @ rig_R[k], R_c @ rig_t[k] + t_c)
+    return JointRigResult(
+        cam_from_rig=ext,
+        rig_from_world={f: (rig_R[k], rig_t[k]) for f, k in f_index.items()},
+        cam_from_world=cam_from_world,
+        target_xyz={rig.target_ids[j]: xyz[j] for j in np.unique(obs_target)},
+        cameras=cameras,
+        residuals_px=residuals,
+        weights=weights,
+        sigma_px={cid: float(p.noise.sigma_px) for cid, p in problems.items()},
+        cam_from_rig_covariance=cov_ext,
+        intrinsics_sigma=int_sigma,
+        result=result,
+        stages=stage,
+        datum=datum_problem.datum.value,
+        variance_factor=float(variance_factor),
+        redundancy=int(redundancy),
+        notes=notes,
+    )
