@@ -78,7 +78,7 @@ def test_block_jacobians_match_numerical(name, model, loss):
         500.0,
         noise,
         radial_names,
-        warp,
+        radial_warp=warp,
     )
     H = [None] * 3
     block.evaluate(None, values, H)
