@@ -1783,7 +1783,39 @@ def recover_dataset(
 
 def add_cli_arguments(parser: argparse.ArgumentParser) -> None:
     """Add the ``detect`` sub-command's arguments to ``parser``."""
-    parser.add_argument("images", nargs="+", metavar="IMAGES", help="image files")
+    parser.add_argument(
+        "images", nargs="*", metavar="IMAGES", help="image files (one camera; rigs: --camera)"
+    )
+    rig = parser.add_argument_group(
+        "rigs",
+        "one folder or glob per camera, images paired into frames, written as dataset@2",
+    )
+    rig.add_argument(
+        "--camera",
+        action="append",
+        default=None,
+        metavar="ID=DIR_OR_GLOB",
+        help="a camera of the rig and its images (repeat per camera; the first is the rig frame)",
+    )
+    rig.add_argument(
+        "--sync",
+        choices=("stem", "timestamp"),
+        default="stem",
+        help="pair images by file-name stem (default) or by the time stamp in the name",
+    )
+    rig.add_argument(
+        "--sync-tolerance",
+        type=float,
+        default=0.01,
+        metavar="S",
+        help="--sync timestamp: largest time difference (s) within a frame (default 0.01)",
+    )
+    rig.add_argument(
+        "--timestamp-unit",
+        choices=("auto", "s", "ms", "us", "ns"),
+        default="auto",
+        help="--sync timestamp: unit of the numbers in the names (default: from their digits)",
+    )
     parser.add_argument(
         "--board",
         required=True,
@@ -1834,8 +1866,45 @@ def add_cli_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def _run_rig_cli(args: argparse.Namespace) -> int:
+    """``detect --camera ID=DIR ...``: a rig, written as dataset@2."""
+    from .detect_rig import detect_rig, parse_camera_options
+
+    if args.images:
+        raise OptionsError(
+            "give the images either positionally (one camera) or per camera with --camera, "
+            f"not both (positional: {args.images[0]!r}...)"
+        )
+    if getattr(args, "recover", False) or getattr(args, "recover_with", None):
+        raise OptionsError("--recover / --recover-with apply to one camera, not to --camera rigs")
+    board = BoardSpec.parse(args.board)
+    dataset, reports, pairing = detect_rig(
+        parse_camera_options(args.camera),
+        board,
+        sync=args.sync,
+        tolerance_s=args.sync_tolerance,
+        timestamp_unit=args.timestamp_unit,
+        progress=not getattr(args, "no_progress", False),
+        markers_csv=args.markers_csv,
+        min_points=getattr(args, "min_points", 1),
+    )
+    write_json_atomic(dataset, args.output)
+    for cid, report in reports.items():
+        print(f"camera {cid}: " + report.summary())
+    print(pairing.summary())
+    print(
+        f"wrote {args.output}: dataset@2, {len(reports)} cameras, {pairing.n_frames} frames, "
+        f"{len(dataset['images'])} images, {len(dataset['targets'])} targets"
+    )
+    return 0
+
+
 def run_cli(args: argparse.Namespace) -> int:
     """Run the ``detect`` sub-command; return the process exit code (0 = success)."""
+    if getattr(args, "camera", None):
+        return _run_rig_cli(args)
+    if not args.images:
+        raise OptionsError("no images: give IMAGES (one camera) or --camera ID=DIR_OR_GLOB (rig)")
     try:
         board = BoardSpec.parse(args.board)
         dataset, report = detect_images(
