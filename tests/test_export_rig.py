@@ -191,3 +191,26 @@ def test_cli_rig_exports_and_errors_name_the_option(tmp_path, capsys):
         err = capsys.readouterr().err
         assert word in err, err
     assert not (tmp_path / "x.json").exists() and not (tmp_path / "x.yaml").exists()
+
+
+def test_undistort_one_camera_of_a_rig(tmp_path, capsys):
+    calib = small_rig(2)
+    rig_path = calib.save(tmp_path / "rig.json")
+    one_path = calib.camera_calibration("cam1").save(tmp_path / "cam1.json")
+    rng = np.random.default_rng(0)
+    image = cv2.resize(rng.integers(0, 255, (H // 8, W // 8), np.uint8), (W, H))
+    cv2.imwrite(str(tmp_path / "raw.png"), image)
+    common = [str(tmp_path / "raw.png"), "--to", "equirectangular", "--size", "200x100"]
+    rig_out, one_out = tmp_path / "rig_eq.png", tmp_path / "one_eq.png"
+    assert main(["undistort", str(rig_path), *common, "--camera", "cam1", "-o", str(rig_out)]) == 0
+    assert main(["undistort", str(one_path), *common, "-o", str(one_out)]) == 0
+    assert np.array_equal(cv2.imread(str(rig_out)), cv2.imread(str(one_out)))
+    capsys.readouterr()
+    for path, extra, word in (
+        (rig_path, [], "--camera"),
+        (rig_path, ["--camera", "cam7"], "cam7"),
+        (one_path, ["--camera", "cam1"], "single-camera"),
+    ):
+        assert main(["undistort", str(path), *common, *extra, "-o", str(tmp_path / "x.png")]) == 2
+        assert word in capsys.readouterr().err
+    assert not (tmp_path / "x.png").exists()
