@@ -11,7 +11,12 @@ import yaml
 
 from gtsam_sphere import SphereCamera
 from gtsam_sphere.apps.export import ds_project, kb_project, omni_project, pixel_rays
-from gtsam_sphere.apps.export_rig import kalibr_camchain, opencv_stereo, relative_pose
+from gtsam_sphere.apps.export_rig import (
+    camera_overlaps,
+    kalibr_camchain,
+    opencv_stereo,
+    relative_pose,
+)
 from gtsam_sphere.cli import main
 from gtsam_sphere.io.calibration import RigCalibration, load_calibration
 
@@ -214,3 +219,31 @@ def test_undistort_one_camera_of_a_rig(tmp_path, capsys):
         assert main(["undistort", str(path), *common, *extra, "-o", str(tmp_path / "x.png")]) == 2
         assert word in capsys.readouterr().err
     assert not (tmp_path / "x.png").exists()
+
+
+def test_cam_overlaps_from_shared_targets_in_a_frame():
+    calib = small_rig(3)
+    calib.image_ids = ["a0", "b0", "c0", "c1"]
+    calib.image_camera = ["cam0", "cam1", "cam2", "cam2"]
+    calib.image_frame = ["f0", "f0", "f0", None]
+    calib.cam_from_world_R = np.repeat(np.eye(3)[None], 4, axis=0)
+    calib.cam_from_world_t = np.zeros((4, 3))
+    calib.extra = {
+        "camera_results": {
+            "cam0": {"observations": {"image": ["a0", "a0"], "target": ["T1", "T2"]}},
+            "cam1": {"observations": {"image": ["b0"], "target": ["T2"]}},
+            # cam2 sees T1 in f0's image? no: only in an unframed image
+            "cam2": {"observations": {"image": ["c0", "c1"], "target": ["T9", "T1"]}},
+        }
+    }
+    assert camera_overlaps(calib) == {"cam0": [1], "cam1": [0], "cam2": []}
+    doc = yaml.safe_load(kalibr_camchain(calib, model="ds-none", n_samples=1000).text)
+    assert [doc[f"cam{k}"]["cam_overlaps"] for k in range(3)] == [[1], [0], []]
+
+
+def test_rig_targets_refuse_a_single_camera_calibration(tmp_path, capsys):
+    path = small_rig(2).camera_calibration("cam0").save(tmp_path / "one.json")
+    for target in ("kalibr", "opencv-stereo"):
+        out = tmp_path / "x.yaml"
+        assert main(["export", str(path), "--to", target, "-o", str(out)]) == 2
+        assert "calibration@1" in capsys.readouterr().err and not out.exists()

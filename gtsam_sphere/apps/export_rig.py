@@ -8,7 +8,8 @@ extrinsics come from the calibration's ``cam_from_rig`` as they are.
 ``kalibr``
     A Kalibr ``camchain.yaml``: ``cam0 .. camN`` in the calibration's camera
     order, each with ``camera_model``, ``intrinsics``, ``distortion_model``,
-    ``distortion_coeffs``, ``resolution`` and, from ``cam1`` on,
+    ``distortion_coeffs``, ``resolution``, ``cam_overlaps`` (the cameras that
+    saw a target in common with it in one frame) and, from ``cam1`` on,
     ``T_cn_cnm1``: the 4x4 transform taking points of camera ``n-1`` to
     camera ``n`` (``cam_from_rig[n] * inverse(cam_from_rig[n-1])``), in
     metres. Models (:data:`KALIBR_MODELS`): ``pinhole-equi`` (Kannala-Brandt,
@@ -110,6 +111,26 @@ def relative_pose(calib, from_id: str, to_id: str) -> tuple[np.ndarray, np.ndarr
     return R, tb - R @ ta
 
 
+def camera_overlaps(calib) -> dict[str, list[int]]:
+    """Kalibr's ``cam_overlaps``: per camera, the indices of the cameras that saw a target in
+    common with it in one frame (from the calibration's stored observations; empty without
+    them)."""
+    frame_of = dict(zip(calib.image_ids, calib.image_frame))
+    seen: dict[str, set] = {}
+    for cid in calib.camera_ids:
+        result = calib.extra.get("camera_results", {}).get(cid, {})
+        obs = result.get("observations") if isinstance(result, dict) else None
+        pairs = set()
+        if isinstance(obs, dict) and isinstance(obs.get("image"), list):
+            for iid, tid in zip(obs["image"], obs.get("target") or []):
+                frame = frame_of.get(iid)
+                if frame is not None:
+                    pairs.add((frame, tid))
+        seen[cid] = pairs
+    ids = calib.camera_ids
+    return {a: [k for k, b in enumerate(ids) if b != a and seen[a] & seen[b]] for a in ids}
+
+
 def fit_camera(calib, camera_id: str, target: str, **kwargs) -> ExportResult:
     """Fit the single-camera export ``target`` to one camera of a rig."""
     return export_calibration(calib.camera_calibration(camera_id), target, **kwargs)
@@ -188,6 +209,7 @@ def kalibr_camchain(
         )
         scale = 1.0
     fits = {cid: _fit_kalibr(calib, cid, model, src, **kwargs) for cid in calib.camera_ids}
+    overlaps = camera_overlaps(calib)
     lines = [f"# Kalibr camchain exported by gtsam-sphere from {src}"]
     lines.append(
         "# T_cn_cnm1: points of camera n-1 to camera n (metres), from the calibration's "
@@ -223,6 +245,7 @@ def kalibr_camchain(
             f"  distortion_model: {dist_model}",
             f"  distortion_coeffs: {_seq(dist)}",
             f"  resolution: [{int(fit.width)}, {int(fit.height)}]",
+            f"  cam_overlaps: [{', '.join(str(k) for k in overlaps[cid])}]",
             f"  rostopic: /cam{n}/image_raw",
             f"  # fit RMS {fit.rms_px:.4f} px, max {fit.max_px:.4f} px, "
             f"coverage {100 * fit.coverage:.1f}%",
