@@ -33,6 +33,8 @@ def _with_frames(calib, n=5):
     calib.statistics["cameras"]["cam1"]["cam_from_rig_precision"] = {
         "rotation_sigma_deg": 0.012,
         "translation_sigma": [1e-4, 2e-4, 3e-4],
+        "baseline_sigma": 2.5e-4,
+        "sigma_source": "marginal covariance of the joint adjustment",
     }
     return calib
 
@@ -62,6 +64,7 @@ def test_rig_page(tmp_path):
     md = paths["markdown"].read_text()
     assert "| [cam1](cam1/index.html) | `radial` | 800 x 640 |" in md
     assert "0.0120" in md and "0.0001, 0.0002, 0.0003" in md  # the file's sigmas
+    assert "2.5000e-04 | marginal covariance of the joint adjustment |" in md
     assert "| cam2 |" in md and "n/a" in md  # no sigma in the file: said so
     html = paths["html"].read_text()
     assert '<a href="cam0/index.html">cam0</a>' in html and "rig.png" in html

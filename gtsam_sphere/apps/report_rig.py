@@ -28,7 +28,17 @@ from pathlib import Path
 import numpy as np
 
 from ..io.calibration import RigCalibration
-from .report import _html, _Image, _markdown, _save, _subplots, _Table, _value, write_report
+from .report import (
+    _html,
+    _Image,
+    _markdown,
+    _save,
+    _subplots,
+    _Table,
+    _value,
+    observations_of,
+    write_report,
+)
 
 _SAFE = re.compile(r"[^A-Za-z0-9_.-]+")
 
@@ -183,9 +193,22 @@ def plot_rig(calib: RigCalibration, path: Path) -> Path:
     return _save(fig, path, tight=True)
 
 
+def _residual_percentiles(calib: RigCalibration, camera_id: str) -> tuple[str, str]:
+    """Median and 95th percentile (px) of a camera's stored residual norms ("" without)."""
+    obs = observations_of(calib.camera_calibration(camera_id))
+    if obs is None or not len(obs.residual_px):
+        return "", ""
+    norm = np.linalg.norm(obs.residual_px, axis=1)
+    norm = norm[np.isfinite(norm)]
+    if not len(norm):
+        return "", ""
+    return _value(float(np.median(norm))), _value(float(np.percentile(norm, 95)))
+
+
 def _camera_table(calib: RigCalibration, links: dict[str, str]) -> _Table:
     rows = []
     for cid in calib.camera_ids:
+        median, p95 = _residual_percentiles(calib, cid)
         cs = calib.statistics.get("cameras", {}).get(cid, {})
         cam = calib.cameras[cid]
         n_img = sum(1 for c in calib.image_camera if c == cid)
@@ -201,6 +224,8 @@ def _camera_table(calib: RigCalibration, links: dict[str, str]) -> _Table:
                 _value(cs.get("rms_px_without_outliers"))
                 if "rms_px_without_outliers" in cs
                 else "",
+                median,
+                p95,
                 f"{cs.get('n_observations', '')} / {cs.get('n_rejected', '')}",
                 str(cs.get("n_outliers", "")),
                 "" if trusted is None else ("yes" if trusted else "**no**"),
@@ -215,6 +240,8 @@ def _camera_table(calib: RigCalibration, links: dict[str, str]) -> _Table:
             "RMS (px)",
             "RMS with rig poses (px)",
             "RMS w/o outliers (px)",
+            "median residual (px)",
+            "95% residual (px)",
             "observations used / rejected",
             "outliers",
             "trusted",
@@ -231,6 +258,11 @@ def _extrinsics_table(calib: RigCalibration) -> _Table:
         rv = rotation_vector_deg(R)
         rot_s, tr_s = extrinsic_sigmas(calib.statistics, cid)
         ref = cid == calib.camera_ids[0]
+        cs = calib.statistics.get("cameras", {}).get(cid, {})
+        base_s = _find(cs, "baseline_sigma")
+        how = _find(cs, "sigma_source")
+        if how is None and rot_s is not None and _find(cs, "rotation_spread_deg") is not None:
+            how = "spread of the frames' relative poses"
         rows.append(
             [
                 cid,
@@ -242,6 +274,8 @@ def _extrinsics_table(calib: RigCalibration) -> _Table:
                 "reference"
                 if ref
                 else ("n/a" if tr_s is None else ", ".join(f"{v:.3g}" for v in tr_s)),
+                "" if ref or base_s is None else _value(base_s),
+                "" if ref or how is None else str(how),
             ]
         )
     return _Table(
@@ -253,6 +287,8 @@ def _extrinsics_table(calib: RigCalibration) -> _Table:
             f"t x, y, z ({u})",
             f"distance to reference ({u})",
             f"t sigma x, y, z ({u})",
+            f"distance sigma ({u})",
+            "sigmas from",
         ],
         rows,
     )
