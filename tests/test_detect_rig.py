@@ -208,3 +208,54 @@ def test_detect_cli_rig_by_timestamp_and_errors(tmp_path, board_images, capsys):
     assert main(["detect", "--board", BOARD, "-o", str(out)]) == 2
     assert "--camera" in capsys.readouterr().err
     assert not out.exists()
+
+
+@pytest.mark.slow  # end to end: render a stereo pair, detect per camera, calibrate the rig
+def test_rendered_stereo_pair_detect_calibrate_recovers_the_extrinsics(tmp_path, capsys):
+    board = BoardSpec.parse("chessboard:6x8:0.03")
+    w, h = 640, 480
+
+    def pinhole(f, cx, cy):
+        def project(p):
+            return np.stack([cx + f * p[:, 0] / p[:, 2], cy + f * p[:, 1] / p[:, 2]], 1)
+
+        def unproject(uv):
+            return np.stack([(uv[:, 0] - cx) / f, (uv[:, 1] - cy) / f, np.ones(len(uv))], 1)
+
+        return project, unproject
+
+    lenses = {"left": pinhole(420.0, 321.0, 238.0), "right": pinhole(430.0, 318.5, 241.0)}
+    rvec_true = np.array([0.0, -0.05, 0.01])
+    R1, t1 = cv2.Rodrigues(rvec_true)[0], np.array([-0.08, 0.0, 0.002])  # right from left
+    rng = np.random.default_rng(0)
+    centre = np.array([0.135, 0.105, 0.0])
+    for k in range(8):
+        rv = rng.uniform(-0.5, 0.5, 3) * [1, 1, 0.5]
+        R = cv2.Rodrigues(rv)[0]
+        t = np.array([rng.uniform(-0.08, 0), rng.uniform(-0.06, 0.06), rng.uniform(0.45, 0.65)])
+        t = t - R @ centre
+        for cid, (project, unproject) in lenses.items():
+            Rc, tc = (R, t) if cid == "left" else (R1 @ R, R1 @ t + t1)
+            img, _ = render_board_image(
+                board, project, unproject, Rc, tc, w, h, supersample=2, blur_sigma_px=0.7
+            )
+            # different names per camera, time stamps 2 ms apart
+            stamp = 1_700_000_000_000 + 100 * k + (2 if cid == "right" else 0)
+            _write(tmp_path / cid, [f"{cid}_{stamp}.png"], [img])
+    rig_path, calib_path = tmp_path / "rig.json", tmp_path / "calib.json"
+    cams = ["--camera", f"left={tmp_path / 'left'}", "--camera", f"right={tmp_path / 'right'}"]
+    argv = ["detect", *cams, "--board", board.text, "-o", str(rig_path), "--no-progress"]
+    assert main([*argv, "--sync", "timestamp", "--sync-tolerance", "0.005"]) == 0
+    assert "frames: 8, images without partner: 0" in capsys.readouterr().out
+    argv = ["calibrate", str(rig_path), "-o", str(calib_path), "--model", "radial", "--quiet"]
+    assert main(argv) == 0
+    from gtsam_sphere.io.calibration import load_calibration
+
+    calib = load_calibration(calib_path)
+    R, t = calib.cam_from_rig["right"]
+    err_deg = np.degrees(np.linalg.norm(cv2.Rodrigues(R @ R1.T)[0]))
+    print(
+        f"rotation error {err_deg:.4f} deg, translation error {np.linalg.norm(t - t1) * 1e3:.3f} mm"
+    )
+    # per-camera + averaged extrinsics today: 0.05 deg, 1.8 mm of an 80 mm baseline
+    assert err_deg < 0.2 and np.linalg.norm(t - t1) < 0.005
