@@ -181,6 +181,10 @@ def test_cli_rig_exports_and_errors_name_the_option(tmp_path, capsys):
     text = capsys.readouterr().out
     assert "camera cam0: kalibr-" in text and "fit RMS" in text
     assert set(yaml.safe_load(out.read_text())) == {"cam0", "cam1"}
+    per_camera = ["--kalibr-model", "omni-radtan", "--kalibr-model", "cam1=ds-none"]
+    assert main([*args, "--to", "kalibr", *per_camera, "-o", str(out)]) == 0
+    doc = yaml.safe_load(out.read_text())
+    assert [doc["cam0"]["camera_model"], doc["cam1"]["camera_model"]] == ["omni", "ds"]
     assert main([*args, "--to", "opencv-stereo", "-o", str(tmp_path / "s.yml")]) == 0
     one = ["--to", "opencv-fisheye", "--camera", "cam1", "-o", str(tmp_path / "f.json")]
     assert main([*args, *one]) == 0
@@ -191,6 +195,10 @@ def test_cli_rig_exports_and_errors_name_the_option(tmp_path, capsys):
         (["--to", "opencv-stereo", "-o", str(tmp_path / "x.txt")], "--output"),
         (["--to", "opencv-stereo", "--stereo-cameras", "cam0,cam9", "-o", "x.yaml"], "cam9"),
         (["--to", "kalibr", "--camera", "cam0", "-o", str(tmp_path / "x.yaml")], "--camera"),
+        (["--to", "kalibr", "--kalibr-model", "cam5=ds-none", "-o", "x.yaml"], "cam5"),
+        (["--to", "kalibr", "--kalibr-model", "cam1=fov", "-o", "x.yaml"], "'fov'"),
+        (["--to", "opencv-stereo", "--kalibr-model", "ds-none", "-o", "x.yaml"], "--kalibr-model"),
+        (["--to", "kalibr", "--stereo-model", "fisheye", "-o", "x.yaml"], "--stereo-model"),
     ):
         assert main([*args, *extra]) == 2
         err = capsys.readouterr().err

@@ -1455,10 +1455,12 @@ def add_cli_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--kalibr-model",
-        default="auto",
-        choices=("auto", "pinhole-equi", "omni-radtan", "ds-none"),
-        help="--to kalibr: every camera's Kalibr model (default auto: per camera the one "
-        "covering most of the observed region, then the smallest fit residual)",
+        action="append",
+        default=None,
+        metavar="[ID=]MODEL",
+        help="--to kalibr: auto, pinhole-equi, omni-radtan or ds-none for every camera, or "
+        "ID=MODEL for one (repeat); default auto: per camera the model covering most of the "
+        "observed region, then the smallest fit residual",
     )
     parser.add_argument(
         "--stereo-model",
@@ -1507,7 +1509,8 @@ def _run_rig_cli(args, calib) -> int:
         source=str(args.calibration),
     )
     if args.target == "kalibr":
-        result = export_rig.kalibr_camchain(calib, model=args.kalibr_model, **kwargs)
+        model, per_camera = export_rig.parse_kalibr_models(args.kalibr_model)
+        result = export_rig.kalibr_camchain(calib, model, per_camera, **kwargs)
     else:
         cameras = None
         if args.stereo_cameras:
@@ -1540,6 +1543,13 @@ def run_cli(args) -> int:
     from ..core.errors import OptionsError
     from ..io.calibration import load_calibration
 
+    for option, given, target in (
+        ("--kalibr-model", getattr(args, "kalibr_model", None), "kalibr"),
+        ("--stereo-model", getattr(args, "stereo_model", "auto") != "auto", "opencv-stereo"),
+        ("--stereo-cameras", getattr(args, "stereo_cameras", None), "opencv-stereo"),
+    ):
+        if given and args.target != target:
+            raise OptionsError(f"{option} applies to --to {target}, not --to {args.target}")
     calib = load_calibration(args.calibration)
     is_rig = hasattr(calib, "camera_ids")
     if args.target in RIG_TARGETS:

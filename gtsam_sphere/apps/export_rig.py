@@ -166,6 +166,7 @@ def _seq(values) -> str:
 def kalibr_camchain(
     calib,
     model: str = "auto",
+    camera_models: dict[str, str] | None = None,
     source: str | None = None,
     **kwargs,
 ) -> RigExport:
@@ -175,7 +176,9 @@ def kalibr_camchain(
     ----------
     calib : RigCalibration
     model : str
-        ``"auto"`` or one of :data:`KALIBR_MODELS` (every camera).
+        ``"auto"`` or one of :data:`KALIBR_MODELS`: the cameras not in ``camera_models``.
+    camera_models : dict of str -> str, optional
+        Camera id -> model, for some cameras.
     source : str, optional
         Calibration file name, written in a comment.
     **kwargs
@@ -195,10 +198,18 @@ def kalibr_camchain(
     """
     src = source or "calibration"
     _check_rig(calib, src)
-    if model != "auto" and model not in KALIBR_MODELS:
-        raise OptionsError(
-            f"--kalibr-model {model!r}: choose auto or one of {', '.join(KALIBR_MODELS)}"
-        )
+    models = dict(camera_models or {})
+    models.update({cid: model for cid in calib.camera_ids if cid not in models})
+    for cid, name in models.items():
+        if cid not in calib.cameras:
+            raise OptionsError(
+                f"--kalibr-model {cid}={name}: no camera {cid!r} in {src} "
+                f"(cameras {calib.camera_ids})"
+            )
+        if name != "auto" and name not in KALIBR_MODELS:
+            raise OptionsError(
+                f"--kalibr-model {name!r}: choose auto or one of {', '.join(KALIBR_MODELS)}"
+            )
     scale = _METRES.get(str(calib.units))
     if scale is None:
         logger.warning(
@@ -208,7 +219,10 @@ def kalibr_camchain(
             calib.units,
         )
         scale = 1.0
-    fits = {cid: _fit_kalibr(calib, cid, model, src, **kwargs) for cid in calib.camera_ids}
+    fits = {
+        cid: _fit_kalibr(calib, cid, models.get(cid, "auto"), src, **kwargs)
+        for cid in calib.camera_ids
+    }
     overlaps = camera_overlaps(calib)
     lines = [f"# Kalibr camchain exported by gtsam-sphere from {src}"]
     lines.append(
@@ -344,6 +358,24 @@ def opencv_stereo(
     fs.write("T", T.reshape(3, 1))
     text = fs.releaseAndGetString()
     return RigExport(text, fits)
+
+
+def parse_kalibr_models(values: list[str] | None) -> tuple[str, dict[str, str]]:
+    """``--kalibr-model`` values (``MODEL`` for the cameras not named, ``ID=MODEL`` per
+    camera) -> ``(model, camera_models)`` of :func:`kalibr_camchain`."""
+    default, per_camera = None, {}
+    for value in values or []:
+        cid, sep, name = value.partition("=")
+        if not sep:
+            if default is not None:
+                raise OptionsError(f"--kalibr-model {value!r}: a second model for every camera")
+            default = value.strip()
+            continue
+        cid, name = cid.strip(), name.strip()
+        if not cid or cid in per_camera:
+            raise OptionsError(f"--kalibr-model {value!r}: expected ID=MODEL, each camera once")
+        per_camera[cid] = name
+    return default or "auto", per_camera
 
 
 def write_rig_export(export: RigExport, path: str | os.PathLike) -> Path:
