@@ -55,10 +55,15 @@ unprojected to its ray (:func:`pixel_hemisphere` says which half of the
 image sphere a pixel lies on).
 
 Files: ``opencv-*`` write JSON (``format: "gtsam-sphere/export-opencv@1"``:
-``image_size = [width, height]``, ``K``, ``D`` or ``dist``, ``fit``),
-``kalibr-*`` write a camchain YAML (``cam0: camera_model, intrinsics,
-distortion_model, distortion_coeffs, resolution``) with the fit residual in
-comments. Both are written atomically.
+``image_size = [width, height]``, ``K``, ``D`` or ``dist``, ``xi`` for
+``opencv-omnidir``, ``fit``), ``kalibr-*`` write a camchain YAML (``cam0:
+camera_model, intrinsics, distortion_model, distortion_coeffs, resolution``)
+with the fit residual in comments. Both are written atomically.
+
+Rigs (``calibration@2``): ``--camera ID`` exports one camera with any target;
+``--to kalibr`` (a camchain of every camera with ``T_cn_cnm1``) and ``--to
+opencv-stereo`` (``R``, ``T`` and two cameras' models) are
+:mod:`gtsam_sphere.apps.export_rig`.
 """
 
 from __future__ import annotations
