@@ -136,6 +136,8 @@ def plot_rig(calib: RigCalibration, path: Path) -> Path:
         axis = R.T @ np.array([0.0, 0.0, 1.0])
         colour = f"C{k % 10}"
         ax0.plot(p[0], p[2], "o", color=colour, ms=8)
+        # the arrow's tip, invisible: keeps it inside the axes' data limits
+        ax0.plot(p[0] + arrow * axis[0], p[2] + arrow * axis[2], "o", alpha=0.0)
         ax0.annotate(
             "",
             (p[0] + arrow * axis[0], p[2] + arrow * axis[2]),
