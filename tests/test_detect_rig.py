@@ -7,6 +7,7 @@ import json
 import cv2
 import numpy as np
 import pytest
+from test_export_rig import small_rig
 
 from gtsam_sphere.apps.detect import BoardSpec
 from gtsam_sphere.apps.detect_rig import (
@@ -195,12 +196,14 @@ def test_detect_cli_rig_by_timestamp_and_errors(tmp_path, board_images, capsys):
     }
     assert "images without partner: 2" in capsys.readouterr().out
     out.unlink()
+    one_camera = small_rig(2).camera_calibration("cam0").save(tmp_path / "one.json")
     for extra, word in (
         (["--camera", f"c2={tmp_path / 'empty'}"], "camera 'c2'"),  # no usable image
         (["--camera", f"c2={tmp_path / 'nothing'}"], "camera 'c2': no image"),
         (["--camera", "c0=x"], "given twice"),
         ([str(tmp_path / "c0" / "cam0_1650000000.000.png")], "positionally"),
-        (["--recover"], "--recover"),
+        (["--recover-with", str(one_camera)], "--recover-with"),
+        (["--recover", "--recover-model", "fancy"], "--recover-model"),
     ):
         assert main([*argv, *cams, *extra]) == 2
         err = capsys.readouterr().err
@@ -245,8 +248,10 @@ def test_rendered_stereo_pair_detect_calibrate_recovers_the_extrinsics(tmp_path,
     rig_path, calib_path = tmp_path / "rig.json", tmp_path / "calib.json"
     cams = ["--camera", f"left={tmp_path / 'left'}", "--camera", f"right={tmp_path / 'right'}"]
     argv = ["detect", *cams, "--board", board.text, "-o", str(rig_path), "--no-progress"]
-    assert main([*argv, "--sync", "timestamp", "--sync-tolerance", "0.005"]) == 0
-    assert "frames: 8, images without partner: 0" in capsys.readouterr().out
+    assert main([*argv, "--sync", "timestamp", "--sync-tolerance", "0.005", "--recover"]) == 0
+    text = capsys.readouterr().out
+    assert "frames: 8, images without partner: 0" in text
+    assert "camera left: periphery recovery" in text and "camera right: periphery" in text
     argv = ["calibrate", str(rig_path), "-o", str(calib_path), "--model", "radial", "--quiet"]
     assert main(argv) == 0
     from gtsam_sphere.io.calibration import load_calibration

@@ -246,6 +246,10 @@ def detect_rig(
     progress: bool = True,
     markers_csv: str | None = None,
     min_points: int = 1,
+    recover: bool = False,
+    recover_with=None,
+    recover_options: dict | None = None,
+    recover_progress=None,
 ):
     """Detect ``board`` in each camera's images and write a ``gtsam-sphere/dataset@2``.
 
@@ -258,6 +262,16 @@ def detect_rig(
         See :func:`pair_images`.
     progress, markers_csv, min_points
         As :func:`gtsam_sphere.apps.detect.detect_images`, per camera.
+    recover : bool
+        Recover the corners the detector missed, per camera
+        (:func:`gtsam_sphere.apps.detect.recover_dataset`).
+    recover_with : RigCalibration, optional
+        First predictions of each camera it holds from its calibration (implies
+        ``recover``); the other cameras calibrate their detections.
+    recover_options : dict, optional
+        ``model``, ``rounds``, ``max_offset_px`` of ``recover_dataset``.
+    recover_progress : callable(str), optional
+        Receives the recovery's progress lines.
 
     Returns
     -------
@@ -267,6 +281,8 @@ def detect_rig(
     reports : dict of str -> DetectionReport
         Per camera.
     pairing : Pairing
+    recoveries : dict of str -> RecoveryReport
+        Per camera, when recovering (else empty).
 
     Raises
     ------
@@ -274,13 +290,14 @@ def detect_rig(
         Naming the camera: no image, no usable image, clashing stems, a file name
         without time stamp (``timestamp``); OptionsError for a bad option.
     """
-    from .detect import detect_images
+    from .detect import detect_images, recover_dataset
 
     if not cameras:
         raise OptionsError("--camera: give at least one camera ID=DIR_OR_GLOB")
     images = {cid: camera_images(cid, spec) for cid, spec in cameras}
     pairing = pair_images(images, sync, tolerance_s, timestamp_unit)
-    cam_entries, doc_images, reports = [], [], {}
+    cam_entries, doc_images, reports, recoveries = [], [], {}, {}
+    recover = recover or recover_with is not None
     targets: dict[str, dict] = {}
     for cid, _ in cameras:
         paths = images[cid]
@@ -293,6 +310,25 @@ def detect_rig(
         except InputError as exc:
             raise InputError(f"camera {cid!r}: {exc}") from None
         reports[cid] = report
+        if recover:
+            first = None
+            if recover_with is not None and cid in recover_with.cameras:
+                first = recover_with.camera_calibration(cid)
+            try:
+                ds, recoveries[cid] = recover_dataset(
+                    ds,
+                    paths,
+                    board,
+                    calibration=first,
+                    progress=None
+                    if recover_progress is None
+                    else (lambda line, cid=cid: recover_progress(f"camera {cid}: {line}")),
+                    **(recover_options or {}),
+                )
+            except OptionsError:
+                raise
+            except InputError as exc:
+                raise InputError(f"camera {cid!r}: recovery: {exc}") from None
         path_of = {Path(p).stem: p for p in paths}
         cam_entries.append({"id": cid, **ds["camera"]})
         for t in ds["targets"]:
@@ -325,4 +361,9 @@ def detect_rig(
             },
         },
     }
-    return dataset, reports, pairing
+    if recoveries:
+        dataset["source"]["recovery"] = {
+            cid: {"added": rec.total, "rescued": list(rec.rescued)}
+            for cid, rec in recoveries.items()
+        }
+    return dataset, reports, pairing, recoveries
