@@ -20,7 +20,9 @@ contract's "image with a pose of its own": it still constrains its camera)
 and is reported; so is a frame missing one of the cameras. Image ids are
 ``CAMERA/STEM``. A file that cannot be read or holds no target is skipped and
 reported, as for one camera; a camera with no usable image is an error naming
-it.
+it. ``--recover`` recovers the corners the detector missed per camera
+(:func:`gtsam_sphere.apps.detect.recover_dataset`; ``--recover-with`` a
+``calibration@2`` gives the first predictions of the cameras it holds).
 """
 
 from __future__ import annotations
