@@ -215,7 +215,7 @@ def test_cli_writes_every_target_and_prints_the_residual(cam, obs75, tmp_path, c
             ref = export_calibration(calib, target, n_samples=2000)
             assert doc["image_size"] == [W, H]
             assert np.allclose(doc["K"], ref.K)
-            assert np.allclose(doc["D" if target == "opencv-fisheye" else "dist"], ref.D)
+            assert np.allclose(doc["dist" if target == "opencv-rational" else "D"], ref.D)
             assert doc["fit"]["rms_px"] == pytest.approx(ref.rms_px)
         else:
             assert out.read_text().count("cam0:") == 1

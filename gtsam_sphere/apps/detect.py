@@ -1820,7 +1820,39 @@ def recover_dataset(
 
 def add_cli_arguments(parser: argparse.ArgumentParser) -> None:
     """Add the ``detect`` sub-command's arguments to ``parser``."""
-    parser.add_argument("images", nargs="+", metavar="IMAGES", help="image files")
+    parser.add_argument(
+        "images", nargs="*", metavar="IMAGES", help="image files (one camera; rigs: --camera)"
+    )
+    rig = parser.add_argument_group(
+        "rigs",
+        "one folder or glob per camera, images paired into frames, written as dataset@2",
+    )
+    rig.add_argument(
+        "--camera",
+        action="append",
+        default=None,
+        metavar="ID=DIR_OR_GLOB",
+        help="a camera of the rig and its images (repeat per camera; the first is the rig frame)",
+    )
+    rig.add_argument(
+        "--sync",
+        choices=("stem", "timestamp"),
+        default="stem",
+        help="pair images by file-name stem (default) or by the time stamp in the name",
+    )
+    rig.add_argument(
+        "--sync-tolerance",
+        type=float,
+        default=0.01,
+        metavar="S",
+        help="--sync timestamp: largest time difference (s) within a frame (default 0.01)",
+    )
+    rig.add_argument(
+        "--timestamp-unit",
+        choices=("auto", "s", "ms", "us", "ns"),
+        default="auto",
+        help="--sync timestamp: unit of the numbers in the names (default: from their digits)",
+    )
     parser.add_argument(
         "--board",
         required=True,
@@ -1871,8 +1903,75 @@ def add_cli_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def _run_rig_cli(args: argparse.Namespace) -> int:
+    """``detect --camera ID=DIR ...``: a rig, written as dataset@2."""
+    from .detect_rig import detect_rig, parse_camera_options
+
+    if args.images:
+        raise OptionsError(
+            "give the images either positionally (one camera) or per camera with --camera, "
+            f"not both (positional: {args.images[0]!r}...)"
+        )
+    from ..core.camera import Model
+
+    board = BoardSpec.parse(args.board)
+    recover_with = None
+    if getattr(args, "recover_with", None):
+        from ..io.calibration import load_calibration
+
+        recover_with = load_calibration(args.recover_with)
+        if not hasattr(recover_with, "camera_ids"):
+            raise OptionsError(
+                f"--recover-with {args.recover_with}: a rig (--camera) needs a rig calibration "
+                "(calibration@2)"
+            )
+    if args.recover_model not in {m.value for m in Model}:
+        raise OptionsError(
+            f"--recover-model {args.recover_model!r}: choose from "
+            + ", ".join(m.value for m in Model)
+        )
+
+    def say(line: str) -> None:
+        if not getattr(args, "no_progress", False):
+            print(f"recovery: {line}", file=sys.stderr, flush=True)
+
+    dataset, reports, pairing, recoveries = detect_rig(
+        parse_camera_options(args.camera),
+        board,
+        sync=args.sync,
+        tolerance_s=args.sync_tolerance,
+        timestamp_unit=args.timestamp_unit,
+        progress=not getattr(args, "no_progress", False),
+        markers_csv=args.markers_csv,
+        min_points=getattr(args, "min_points", 1),
+        recover=bool(getattr(args, "recover", False)),
+        recover_with=recover_with,
+        recover_options={
+            "model": args.recover_model,
+            "rounds": args.recover_rounds,
+            "max_offset_px": args.recover_max_offset_px,
+        },
+        recover_progress=say,
+    )
+    write_json_atomic(dataset, args.output)
+    for cid, report in reports.items():
+        print(f"camera {cid}: " + report.summary())
+        if cid in recoveries:
+            print(f"camera {cid}: " + recoveries[cid].summary())
+    print(pairing.summary())
+    print(
+        f"wrote {args.output}: dataset@2, {len(reports)} cameras, {pairing.n_frames} frames, "
+        f"{len(dataset['images'])} images, {len(dataset['targets'])} targets"
+    )
+    return 0
+
+
 def run_cli(args: argparse.Namespace) -> int:
     """Run the ``detect`` sub-command; return the process exit code (0 = success)."""
+    if getattr(args, "camera", None):
+        return _run_rig_cli(args)
+    if not args.images:
+        raise OptionsError("no images: give IMAGES (one camera) or --camera ID=DIR_OR_GLOB (rig)")
     try:
         board = BoardSpec.parse(args.board)
         dataset, report = detect_images(

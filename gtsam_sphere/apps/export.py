@@ -31,6 +31,16 @@ Targets (``TARGETS``)
     + z``, ``d2 = |(x, y, w)|``, ``u = fu x / (alpha d2 + (1 - alpha) w) +
     pu``; valid where ``z > -w2 d1`` (Eq. 43 of the paper), which reaches past
     90 deg, so fields of view beyond 180 deg are representable.
+``opencv-omnidir``
+    The unified (Mei) model of ``cv2.omnidir`` (opencv_contrib): the ray is
+    put on the unit sphere, ``xs = P / |P|``, projected from ``(0, 0, -xi)``:
+    ``a = xs_x / (xs_z + xi)``, ``b = xs_y / (xs_z + xi)``, then radial-
+    tangential distortion ``D = (k1, k2, p1, p2)`` and ``K`` (no skew);
+    valid where ``xs_z > -min(xi, 1 / xi)`` (beyond 90 deg for ``xi > 0``):
+    catadioptric and >180 deg fisheye lenses.
+``kalibr-omni``
+    Kalibr ``omni`` + ``radtan`` (``intrinsics = [xi, fu, fv, pu, pv]``): the
+    same model as ``opencv-omnidir``, written as a camchain YAML.
 
 Every target uses OpenCV's pixel convention (``(0, 0)`` is the centre of
 the top-left pixel), as this package does; no half-pixel shift is applied.
@@ -45,10 +55,15 @@ unprojected to its ray (the camera's ``pixel_hemisphere`` says which half of
 the image sphere a pixel lies on; :mod:`gtsam_sphere.core.rays`).
 
 Files: ``opencv-*`` write JSON (``format: "gtsam-sphere/export-opencv@1"``:
-``image_size = [width, height]``, ``K``, ``D`` or ``dist``, ``fit``),
-``kalibr-*`` write a camchain YAML (``cam0: camera_model, intrinsics,
-distortion_model, distortion_coeffs, resolution``) with the fit residual in
-comments. Both are written atomically.
+``image_size = [width, height]``, ``K``, ``D`` or ``dist``, ``xi`` for
+``opencv-omnidir``, ``fit``), ``kalibr-*`` write a camchain YAML (``cam0:
+camera_model, intrinsics, distortion_model, distortion_coeffs, resolution``)
+with the fit residual in comments. Both are written atomically.
+
+Rigs (``calibration@2``): ``--camera ID`` exports one camera with any target;
+``--to kalibr`` (a camchain of every camera with ``T_cn_cnm1``) and ``--to
+opencv-stereo`` (``R``, ``T`` and two cameras' models) are
+:mod:`gtsam_sphere.apps.export_rig`.
 """
 
 from __future__ import annotations
@@ -74,7 +89,23 @@ from ..io.dataset import DatasetError, write_bytes_atomic, write_json_atomic
 
 logger = logging.getLogger(__name__)
 
-TARGETS: tuple[str, ...] = ("opencv-fisheye", "opencv-rational", "kalibr-equi", "kalibr-ds")
+TARGETS: tuple[str, ...] = (
+    "opencv-fisheye",
+    "opencv-rational",
+    "opencv-omnidir",
+    "kalibr-equi",
+    "kalibr-ds",
+    "kalibr-omni",
+)
+#: model family fitted for each target
+TARGET_FAMILY: dict[str, str] = {
+    "opencv-fisheye": "kannala-brandt",
+    "kalibr-equi": "kannala-brandt",
+    "opencv-rational": "rational",
+    "kalibr-ds": "double-sphere",
+    "opencv-omnidir": "omni",
+    "kalibr-omni": "omni",
+}
 REGIONS: tuple[str, ...] = ("hull", "radius", "image")
 EXPORT_FORMAT = "gtsam-sphere/export-opencv@1"
 #: default incidence limit (deg) of the rational (pinhole) export
@@ -84,6 +115,13 @@ RATIONAL_MAX_INCIDENCE_DEG = 80.0
 _KB_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "k3", "k4")
 _RATIONAL_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
 _DS_NAMES = ("xi", "alpha", "fx", "fy", "cx", "cy")
+_OMNI_NAMES = ("xi", "fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2")
+_FAMILY_NAMES = {
+    "kannala-brandt": _KB_NAMES,
+    "rational": _RATIONAL_NAMES,
+    "double-sphere": _DS_NAMES,
+    "omni": _OMNI_NAMES,
+}
 
 
 # --------------------------------------------------------------------------- observed region
@@ -370,6 +408,83 @@ def ds_valid(params: np.ndarray, rays: np.ndarray) -> np.ndarray:
     return (z > -w2 * d1) & (den > 0)
 
 
+def omni_project(params: np.ndarray, rays: np.ndarray, jacobians: bool = False):
+    """Unified (Mei) projection with radial-tangential distortion (``cv2.omnidir``, Kalibr
+    ``omni-radtan``).
+
+    ``xs = P / |P|``, ``a = xs_x / (xs_z + xi)``, ``b = xs_y / (xs_z + xi)``, ``r2 = a^2 +
+    b^2``, ``R = 1 + k1 r2 + k2 r2^2``, ``x'' = a R + 2 p1 a b + p2 (r2 + 2 a^2)``, ``y'' =
+    b R + p1 (r2 + 2 b^2) + 2 p2 a b``, ``u = fx x'' + cx``, ``v = fy y'' + cy``.
+
+    Parameters
+    ----------
+    params : ndarray, shape (9,)
+        ``xi`` (dimensionless), ``fx, fy, cx, cy`` (px), ``k1, k2, p1, p2``.
+    rays : ndarray, shape (N, 3)
+        Camera frame (x right, y down, z forward), any direction; see
+        :func:`omni_valid` for where the model is defined.
+    jacobians : bool
+        Also return ``d uv / d params``, shape (N, 2, 9).
+
+    Returns
+    -------
+    uv_px : ndarray, shape (N, 2)
+    """
+    xi, fx, fy, cx, cy, k1, k2, p1, p2 = (float(v) for v in params)
+    d = np.linalg.norm(rays, axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        den = rays[:, 2] / d + xi
+        a = rays[:, 0] / d / den
+        b = rays[:, 1] / d / den
+    r2 = a * a + b * b
+    R = 1 + r2 * (k1 + r2 * k2)
+    xd = a * R + 2 * p1 * a * b + p2 * (r2 + 2 * a * a)
+    yd = b * R + p1 * (r2 + 2 * b * b) + 2 * p2 * a * b
+    uv = np.column_stack([fx * xd + cx, fy * yd + cy])
+    if not jacobians:
+        return uv
+    dR = k1 + 2 * k2 * r2  # dR / dr2
+    dxd_da = R + 2 * a * a * dR + 2 * p1 * b + 6 * p2 * a
+    dxd_db = 2 * a * b * dR + 2 * p1 * a + 2 * p2 * b
+    dyd_da = 2 * a * b * dR + 2 * p1 * a + 2 * p2 * b
+    dyd_db = R + 2 * b * b * dR + 6 * p1 * b + 2 * p2 * a
+    with np.errstate(invalid="ignore", divide="ignore"):
+        da, db = -a / den, -b / den  # d a / d xi, d b / d xi
+    J = np.zeros((len(rays), 2, 9))
+    J[:, 0, 0] = fx * (dxd_da * da + dxd_db * db)
+    J[:, 1, 0] = fy * (dyd_da * da + dyd_db * db)
+    J[:, 0, 1] = xd
+    J[:, 1, 2] = yd
+    J[:, 0, 3] = 1.0
+    J[:, 1, 4] = 1.0
+    J[:, 0, 5] = fx * a * r2
+    J[:, 1, 5] = fy * b * r2
+    J[:, 0, 6] = fx * a * r2 * r2
+    J[:, 1, 6] = fy * b * r2 * r2
+    J[:, 0, 7] = fx * 2 * a * b
+    J[:, 1, 7] = fy * (r2 + 2 * b * b)
+    J[:, 0, 8] = fx * (r2 + 2 * a * a)
+    J[:, 1, 8] = fy * 2 * a * b
+    return uv, J
+
+
+def omni_valid(params: np.ndarray, rays: np.ndarray) -> np.ndarray:
+    """Rays (N, 3) the unified model projects one-to-one: ``xs_z > -min(xi, 1 / xi)``, (N,) bool.
+
+    For ``xi <= 1`` the limit is where the projection centre's denominator
+    vanishes, for ``xi > 1`` where the mapping folds back (Mei 2007, Kalibr's
+    ``omni`` model); ``xi`` must be non-negative.
+    """
+    xi = float(params[0])
+    n = len(rays)
+    if not (xi >= 0.0 and math.isfinite(xi)):
+        return np.zeros(n, bool)
+    limit = xi if xi <= 1.0 else 1.0 / xi
+    d = np.linalg.norm(rays, axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return (rays[:, 2] / d > -limit + 1e-9) & (d > 0)
+
+
 # --------------------------------------------------------------------------- least squares
 
 
@@ -498,6 +613,34 @@ def _rational_feasible(params, rays) -> bool:
     return bool(np.all(1 + grid * (k4 + grid * (k5 + grid * k6)) > 0))
 
 
+def _omni_initial(rays, uv, pp) -> np.ndarray:
+    """Grid over ``xi`` (no distortion): focal lengths solved linearly, the most valid rays
+    then the lowest cost wins."""
+    best = None
+    sub = np.unique(np.linspace(0, len(rays) - 1, min(len(rays), 2000)).astype(int))
+    rs = rays[sub]
+    du = uv[sub, 0] - pp[0]
+    dv = uv[sub, 1] - pp[1]
+    for xi in np.linspace(0.0, 3.0, 31):
+        p = np.array([xi, 1.0, 1.0, pp[0], pp[1], 0.0, 0.0, 0.0, 0.0])
+        n_valid = int(omni_valid(p, rays).sum())
+        valid = omni_valid(p, rs)
+        if valid.sum() < 10:
+            continue
+        m = omni_project(p, rs[valid]) - pp
+        fx = float(m[:, 0] @ du[valid] / max(m[:, 0] @ m[:, 0], 1e-300))
+        fy = float(m[:, 1] @ dv[valid] / max(m[:, 1] @ m[:, 1], 1e-300))
+        if not (fx > 0 and fy > 0):
+            continue
+        res = np.column_stack([fx * m[:, 0] - du[valid], fy * m[:, 1] - dv[valid]])
+        key = (-n_valid, float(np.sum(res**2)))
+        if best is None or key < best[0]:
+            best = (key, np.array([xi, fx, fy, pp[0], pp[1], 0.0, 0.0, 0.0, 0.0]))
+    if best is None:
+        raise ValueError("no unified-model start projects the observed region")
+    return best[1]
+
+
 def _ds_initial(rays, uv, pp) -> np.ndarray:
     """Grid over ``(xi, alpha)``: focal lengths solved linearly, the most valid rays then lowest
     cost wins."""
@@ -589,18 +732,13 @@ class ExportResult:
 
     @property
     def family(self) -> str:
-        """``"kannala-brandt"``, ``"rational"`` or ``"double-sphere"``."""
-        if self.target in ("opencv-fisheye", "kalibr-equi"):
-            return "kannala-brandt"
-        return "rational" if self.target == "opencv-rational" else "double-sphere"
+        """``"kannala-brandt"``, ``"rational"``, ``"double-sphere"`` or ``"omni"``."""
+        return TARGET_FAMILY[self.target]
 
     @property
     def vector(self) -> np.ndarray:
         """The parameters as the vector of the model functions (``kb_project`` ...)."""
-        names = {"kannala-brandt": _KB_NAMES, "rational": _RATIONAL_NAMES}.get(
-            self.family, _DS_NAMES
-        )
-        return np.array([self.params[n] for n in names], float)
+        return np.array([self.params[n] for n in _FAMILY_NAMES[self.family]], float)
 
     @property
     def K(self) -> np.ndarray:
@@ -611,10 +749,11 @@ class ExportResult:
     @property
     def D(self) -> np.ndarray:
         """Distortion vector: ``(k1..k4)`` (fisheye), ``(k1, k2, p1, p2, k3..k6)`` (rational),
-        empty for the double sphere."""
+        ``(k1, k2, p1, p2)`` (omni), empty for the double sphere."""
         names = {
             "kannala-brandt": _KB_NAMES[4:],
             "rational": _RATIONAL_NAMES[4:],
+            "omni": _OMNI_NAMES[5:],
         }.get(self.family, ())
         return np.array([self.params[n] for n in names], float)
 
@@ -623,6 +762,8 @@ class ExportResult:
         rays = np.asarray(rays, float).reshape(-1, 3)
         if self.family == "double-sphere":
             return ds_valid(self.vector, rays)
+        if self.family == "omni":
+            return omni_valid(self.vector, rays)
         inc = incidence_deg(rays)
         limit = self.params.get("max_incidence_deg", 90.0)
         return (rays[:, 2] > 0) & (inc < limit)
@@ -660,9 +801,11 @@ class ExportResult:
                 uv, _ = cv2.projectPoints(obj[0], zero, zero, self.K, self.D)
             out[ok] = np.asarray(uv, float).reshape(-1, 2)
             return out
-        fn = {"kannala-brandt": kb_project, "rational": rational_project}.get(
-            self.family, ds_project
-        )
+        fn = {
+            "kannala-brandt": kb_project,
+            "rational": rational_project,
+            "omni": omni_project,
+        }.get(self.family, ds_project)
         out[ok] = fn(self.vector, r)
         return out
 
@@ -727,6 +870,10 @@ class ExportResult:
             doc["flags"] = ["CALIB_RATIONAL_MODEL"]
             doc["max_incidence_deg"] = self.params["max_incidence_deg"]
             doc["model"] = "cv2 pinhole, rational distortion (k1, k2, p1, p2, k3, k4, k5, k6)"
+        elif self.family == "omni":
+            doc["D"] = self.D.tolist()
+            doc["xi"] = self.params["xi"]
+            doc["model"] = "cv2.omnidir (unified / Mei), D = (k1, k2, p1, p2), no skew"
         else:
             doc["params"] = dict(self.params)
         doc["fit"] = self.fit_dict()
@@ -745,6 +892,10 @@ class ExportResult:
             model, dist_model = "ds", "none"
             intr = [p["xi"], p["alpha"], p["fx"], p["fy"], p["cx"], p["cy"]]
             dist = []
+        elif self.family == "omni":
+            model, dist_model = "omni", "radtan"
+            intr = [p["xi"], p["fx"], p["fy"], p["cx"], p["cy"]]
+            dist = list(self.D)
         else:
             raise ValueError("Kalibr has no rational distortion model; export opencv-rational")
 
@@ -832,17 +983,13 @@ def export_camera(
     rays, uv = sample.rays, sample.uv_px
     inc = sample.incidence_deg
     pp = np.array([camera.xp, camera.yp], float)
-    family = (
-        "kannala-brandt"
-        if target in ("opencv-fisheye", "kalibr-equi")
-        else ("rational" if target == "opencv-rational" else "double-sphere")
-    )
+    family = TARGET_FAMILY[target]
     if family == "rational" and max_incidence_deg is None:
         max_incidence_deg = RATIONAL_MAX_INCIDENCE_DEG
     use = np.ones(len(rays), bool)
     if max_incidence_deg is not None:
         use &= inc < float(max_incidence_deg)
-    if family != "double-sphere":
+    if family in ("kannala-brandt", "rational"):
         use &= rays[:, 2] > 1e-9
     if use.sum() < 20:
         raise ValueError(
@@ -868,6 +1015,16 @@ def export_camera(
         )
         domain = f"rays below {max_incidence_deg:g} deg incidence (pinhole model)"
         extra["max_incidence_deg"] = float(max_incidence_deg)
+        covered_p = fit.x
+    elif family == "omni":
+        names = _OMNI_NAMES
+        p0 = _omni_initial(rays[use], uv[use], pp)
+        use &= omni_valid(p0, rays)
+        r_use = rays[use]
+        fit = _fit(omni_project, p0, r_use, uv[use], lambda p: bool(np.all(omni_valid(p, r_use))))
+        domain = "rays the unified (Mei) model projects one-to-one"
+        if max_incidence_deg is not None:
+            domain += f", below {max_incidence_deg:g} deg incidence"
         covered_p = fit.x
     else:
         names = _DS_NAMES
@@ -1052,12 +1209,55 @@ def _finite_or_none(obj):
 # --------------------------------------------------------------------------- CLI
 
 
+#: rig targets of the command line (:mod:`gtsam_sphere.apps.export_rig`)
+RIG_TARGETS: tuple[str, ...] = ("kalibr", "opencv-stereo")
+
+
 def add_cli_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of ``gtsam-sphere export``."""
-    parser.add_argument("calibration", help="gtsam-sphere/calibration@1 file")
-    parser.add_argument("--to", required=True, choices=TARGETS, dest="target", help="model")
+    parser.add_argument("calibration", help="gtsam-sphere/calibration@1 or @2 (rig) file")
     parser.add_argument(
-        "-o", "--output", required=True, help="file to write (JSON for opencv-*, YAML for kalibr-*)"
+        "--to",
+        required=True,
+        choices=TARGETS + RIG_TARGETS,
+        dest="target",
+        help="model; kalibr (camchain.yaml of every camera, with T_cn_cnm1) and opencv-stereo "
+        "(R, T and both cameras' models) export a rig",
+    )
+    parser.add_argument(
+        "-o",
+        "--output",
+        required=True,
+        help="file to write (JSON for opencv-*, YAML for kalibr*, .yaml or .json for "
+        "opencv-stereo)",
+    )
+    parser.add_argument(
+        "--camera",
+        default=None,
+        metavar="ID",
+        help="rig calibration: the camera a single-camera target (opencv-*, kalibr-*) exports",
+    )
+    parser.add_argument(
+        "--kalibr-model",
+        action="append",
+        default=None,
+        metavar="[ID=]MODEL",
+        help="--to kalibr: auto, pinhole-equi, omni-radtan or ds-none for every camera, or "
+        "ID=MODEL for one (repeat); default auto: per camera the model covering most of the "
+        "observed region, then the smallest fit residual",
+    )
+    parser.add_argument(
+        "--stereo-model",
+        default="auto",
+        choices=("auto", "fisheye", "omnidir"),
+        help="--to opencv-stereo: cv2.fisheye or cv2.omnidir models (default auto: fisheye "
+        "when it covers both cameras' observed regions)",
+    )
+    parser.add_argument(
+        "--stereo-cameras",
+        default=None,
+        metavar="ID1,ID2",
+        help="--to opencv-stereo: the two cameras (default the rig's first two)",
     )
     parser.add_argument(
         "--region",
@@ -1082,11 +1282,80 @@ def add_cli_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def _run_rig_cli(args, calib) -> int:
+    """``--to kalibr`` / ``--to opencv-stereo``."""
+    from . import export_rig
+
+    kwargs = dict(
+        region=args.region,
+        max_incidence_deg=args.max_incidence_deg,
+        n_samples=args.samples,
+        source=str(args.calibration),
+    )
+    if args.target == "kalibr":
+        model, per_camera = export_rig.parse_kalibr_models(args.kalibr_model)
+        result = export_rig.kalibr_camchain(calib, model, per_camera, **kwargs)
+    else:
+        cameras = None
+        if args.stereo_cameras:
+            cameras = tuple(c.strip() for c in args.stereo_cameras.split(","))
+        fmt = export_rig.stereo_format(args.output)
+        result = export_rig.opencv_stereo(
+            calib, cameras=cameras, model=args.stereo_model, fmt=fmt, **kwargs
+        )
+    path = export_rig.write_rig_export(result, args.output)
+    print(f"wrote {path}")
+    print(result.summary())
+    bad = [
+        cid
+        for cid, fit in result.fits.items()
+        if not (fit.rms_px <= args.max_rms_px) or not fit.converged
+    ]
+    if bad:
+        logger.warning(
+            "camera(s) %s: fit RMS exceeds %g px or the fit did not converge: the exported "
+            "model does not reproduce the calibration",
+            ", ".join(bad),
+            args.max_rms_px,
+        )
+        return 1
+    return 0
+
+
 def run_cli(args) -> int:
     """Run ``gtsam-sphere export``: 0 on success, 1 if the fit is poor (bad input raises)."""
+    from ..core.errors import OptionsError
     from ..io.calibration import load_calibration
 
+    for option, given, target in (
+        ("--kalibr-model", getattr(args, "kalibr_model", None), "kalibr"),
+        ("--stereo-model", getattr(args, "stereo_model", "auto") != "auto", "opencv-stereo"),
+        ("--stereo-cameras", getattr(args, "stereo_cameras", None), "opencv-stereo"),
+    ):
+        if given and args.target != target:
+            raise OptionsError(f"{option} applies to --to {target}, not --to {args.target}")
     calib = load_calibration(args.calibration)
+    is_rig = hasattr(calib, "camera_ids")
+    if args.target in RIG_TARGETS:
+        if args.camera is not None:
+            raise OptionsError(f"--camera applies to single-camera targets, not --to {args.target}")
+        return _run_rig_cli(args, calib)
+    if is_rig:
+        if args.camera is None:
+            raise OptionsError(
+                f"{args.calibration} is a rig (cameras {calib.camera_ids}): name the camera "
+                f"to export with --camera ID, or use --to kalibr / --to opencv-stereo"
+            )
+        if args.camera not in calib.cameras:
+            raise OptionsError(
+                f"--camera {args.camera!r}: no such camera in {args.calibration} "
+                f"(cameras {calib.camera_ids})"
+            )
+        calib = calib.camera_calibration(args.camera)
+    elif args.camera is not None:
+        raise OptionsError(
+            f"--camera {args.camera!r}: {args.calibration} is a single-camera calibration"
+        )
     result = export_calibration(
         calib,
         args.target,

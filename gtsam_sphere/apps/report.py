@@ -39,6 +39,7 @@ import argparse
 import html
 import math
 import os
+import re
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -46,7 +47,7 @@ from pathlib import Path
 import numpy as np
 
 from ..core.robust import mad_sigma
-from ..io.calibration import Calibration, load_calibration
+from ..io.calibration import Calibration, RigCalibration, load_calibration
 
 #: The plot files of a report, in page order, with their captions.
 PLOTS: dict[str, str] = {
@@ -1099,10 +1100,22 @@ def _markdown(blocks) -> str:
     return "\n".join(out)
 
 
+_LINK = re.compile(r"\[([^\]]+)\]\(([^)\s]+)\)")
+_BOLD = re.compile(r"\*\*(.+?)\*\*")
+
+
 def _inline_html(text: str) -> str:
-    """Escape ``text`` and turn Markdown ``code`` spans into ``<code>``."""
+    """Escape ``text`` and turn Markdown ``code`` spans, ``[links](href)`` and ``**bold**``
+    into HTML."""
     parts = html.escape(text).split("`")
-    return "".join(f"<code>{p}</code>" if k % 2 else p for k, p in enumerate(parts))
+    out = []
+    for k, p in enumerate(parts):
+        if k % 2:
+            out.append(f"<code>{p}</code>")
+        else:
+            p = _LINK.sub(r'<a href="\2">\1</a>', p)
+            out.append(_BOLD.sub(r"<strong>\1</strong>", p))
+    return "".join(out)
 
 
 def _html(blocks, title: str) -> str:
@@ -1141,8 +1154,8 @@ def _html(blocks, title: str) -> str:
     )
 
 
-def _load(c) -> Calibration:
-    if isinstance(c, Calibration):
+def _load(c) -> Calibration | RigCalibration:
+    if isinstance(c, (Calibration, RigCalibration)):
         return c
     return load_calibration(c)
 
@@ -1159,7 +1172,10 @@ def write_report(
     Parameters
     ----------
     calibration_path_or_obj : path or Calibration
-        A ``gtsam-sphere/calibration@1`` file or a loaded calibration.
+        A ``gtsam-sphere/calibration@1`` file or a loaded calibration; a
+        ``calibration@2`` rig writes the rig page and one page per camera
+        (:func:`gtsam_sphere.apps.report_rig.write_rig_report`, whose paths are
+        returned).
     out_dir : path
         Created if needed; existing report files in it are overwritten.
     compare_with : list of Calibration (or paths), optional
@@ -1181,6 +1197,18 @@ def write_report(
     """
     source = None if isinstance(calibration_path_or_obj, Calibration) else calibration_path_or_obj
     calib = _load(calibration_path_or_obj)
+    if isinstance(calib, RigCalibration):  # calibration@2: the rig page and a page per camera
+        from ..core.errors import OptionsError
+        from .report_rig import write_rig_report
+
+        if compare_with:
+            raise OptionsError(
+                "--compare compares single-camera calibrations; a rig's report compares its "
+                "cameras on the rig page"
+            )
+        return write_rig_report(
+            calib, out_dir, title=title, source=None if source is None else str(source)
+        )
     others = [_load(c) for c in compare_with or []]
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -1326,7 +1354,10 @@ def write_report(
 
 def add_cli_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of ``gtsam-sphere report``."""
-    parser.add_argument("calibration", help="gtsam-sphere/calibration@1 file")
+    parser.add_argument(
+        "calibration",
+        help="gtsam-sphere/calibration@1 file, or @2 (rig: a rig page and a page per camera)",
+    )
     parser.add_argument("-o", "--output", required=True, help="directory to write the report to")
     parser.add_argument(
         "--compare",
@@ -1343,5 +1374,12 @@ def run_cli(args) -> int:
     paths = write_report(
         args.calibration, args.output, compare_with=list(args.compare), title=args.title
     )
+    cameras = [k.split(":", 1)[1] for k in paths if k.startswith("camera:")]
+    if cameras:
+        print(
+            f"wrote {paths['html']} and {paths['markdown']} (rig page, {paths['rig'].name}) and "
+            f"a page per camera: " + ", ".join(str(paths[f"camera:{c}"]) for c in cameras)
+        )
+        return 0
     print(f"wrote {paths['html']} and {paths['markdown']} with {len(PLOTS)} plots")
     return 0

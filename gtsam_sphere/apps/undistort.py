@@ -424,8 +424,16 @@ def _parse_size(text: str | None) -> tuple[int, int] | None:
 
 def add_cli_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of ``gtsam-sphere undistort``."""
-    parser.add_argument("calibration", help="gtsam-sphere/calibration@1 file")
+    parser.add_argument(
+        "calibration", help="gtsam-sphere/calibration@1 file, or @2 (rig) with --camera"
+    )
     parser.add_argument("image", help="raw image of the calibrated camera")
+    parser.add_argument(
+        "--camera",
+        default=None,
+        metavar="ID",
+        help="rig calibration (calibration@2): the camera that took the image",
+    )
     parser.add_argument("--to", required=True, choices=KINDS, dest="kind", help="projection")
     parser.add_argument(
         "--fov-deg",
@@ -448,10 +456,28 @@ def run_cli(args) -> int:
     calib = load_calibration(args.calibration)
     if not Path(args.image).is_file():
         raise DatasetError(f"{args.image}: no such image file")
+    camera_id = getattr(args, "camera", None)
+    if hasattr(calib, "camera_ids"):  # calibration@2: one camera of the rig
+        if camera_id is None:
+            raise OptionsError(
+                f"{args.calibration} is a rig (cameras {calib.camera_ids}): name the camera "
+                "that took the image with --camera ID"
+            )
+        if camera_id not in calib.cameras:
+            raise OptionsError(
+                f"--camera {camera_id!r}: no such camera in {args.calibration} "
+                f"(cameras {calib.camera_ids})"
+            )
+        cam = calib.cameras[camera_id]
+    elif camera_id is not None:
+        raise OptionsError(
+            f"--camera {camera_id!r}: {args.calibration} is a single-camera calibration"
+        )
+    else:
+        cam = calib.camera
     image = cv2.imread(str(args.image), cv2.IMREAD_UNCHANGED)
     if image is None:
         raise DatasetError(f"{args.image}: not an image cv2 can read")
-    cam = calib.camera
     if image.shape[1] != cam.width or image.shape[0] != cam.height:
         raise DatasetError(
             f"{args.image}: image is {image.shape[1]}x{image.shape[0]} px but calibration "
