@@ -10,11 +10,11 @@ import pytest
 import yaml
 from test_export_rig import small_rig
 
-from gtsam_sphere.apps.report import write_report
 from gtsam_sphere.apps.report_rig import (
     extrinsic_sigmas,
     rotation_angle_deg,
     rotation_vector_deg,
+    write_any_report,
     write_rig_report,
 )
 from gtsam_sphere.cli import main
@@ -95,7 +95,7 @@ def test_simulated_stereo_rig_report_and_exports(tmp_path, capsys):
     )
     capsys.readouterr()
     rig = load_calibration(calib_path)
-    paths = write_report(calib_path, tmp_path / "rep")
+    paths = write_any_report(calib_path, tmp_path / "rep")
     assert set(paths) >= {"rig", "html", "markdown", "camera:left", "camera:right"}
     md = paths["markdown"].read_text()
     assert "| [right](right/index.html) |" in md and "rotation sigma (deg)" in md

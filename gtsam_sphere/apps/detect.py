@@ -1903,73 +1903,10 @@ def add_cli_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def _run_rig_cli(args: argparse.Namespace) -> int:
-    """``detect --camera ID=DIR ...``: a rig, written as dataset@2."""
-    from .detect_rig import detect_rig, parse_camera_options
-
-    if args.images:
-        raise OptionsError(
-            "give the images either positionally (one camera) or per camera with --camera, "
-            f"not both (positional: {args.images[0]!r}...)"
-        )
-    from ..core.camera import Model
-
-    board = BoardSpec.parse(args.board)
-    recover_with = None
-    if getattr(args, "recover_with", None):
-        from ..io.calibration import load_calibration
-
-        recover_with = load_calibration(args.recover_with)
-        if not hasattr(recover_with, "camera_ids"):
-            raise OptionsError(
-                f"--recover-with {args.recover_with}: a rig (--camera) needs a rig calibration "
-                "(calibration@2)"
-            )
-    if args.recover_model not in {m.value for m in Model}:
-        raise OptionsError(
-            f"--recover-model {args.recover_model!r}: choose from "
-            + ", ".join(m.value for m in Model)
-        )
-
-    def say(line: str) -> None:
-        if not getattr(args, "no_progress", False):
-            print(f"recovery: {line}", file=sys.stderr, flush=True)
-
-    dataset, reports, pairing, recoveries = detect_rig(
-        parse_camera_options(args.camera),
-        board,
-        sync=args.sync,
-        tolerance_s=args.sync_tolerance,
-        timestamp_unit=args.timestamp_unit,
-        progress=not getattr(args, "no_progress", False),
-        markers_csv=args.markers_csv,
-        min_points=getattr(args, "min_points", 1),
-        recover=bool(getattr(args, "recover", False)),
-        recover_with=recover_with,
-        recover_options={
-            "model": args.recover_model,
-            "rounds": args.recover_rounds,
-            "max_offset_px": args.recover_max_offset_px,
-        },
-        recover_progress=say,
-    )
-    write_json_atomic(dataset, args.output)
-    for cid, report in reports.items():
-        print(f"camera {cid}: " + report.summary())
-        if cid in recoveries:
-            print(f"camera {cid}: " + recoveries[cid].summary())
-    print(pairing.summary())
-    print(
-        f"wrote {args.output}: dataset@2, {len(reports)} cameras, {pairing.n_frames} frames, "
-        f"{len(dataset['images'])} images, {len(dataset['targets'])} targets"
-    )
-    return 0
-
-
 def run_cli(args: argparse.Namespace) -> int:
     """Run the ``detect`` sub-command; return the process exit code (0 = success)."""
-    if getattr(args, "camera", None):
-        return _run_rig_cli(args)
+    if getattr(args, "camera", None):  # a rig: detect_rig.run_cli (the command line routes it)
+        raise OptionsError("--camera ID=DIR_OR_GLOB is a rig: run it with detect_rig.run_cli")
     if not args.images:
         raise OptionsError("no images: give IMAGES (one camera) or --camera ID=DIR_OR_GLOB (rig)")
     try:

@@ -1282,50 +1282,9 @@ def add_cli_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def _run_rig_cli(args, calib) -> int:
-    """``--to kalibr`` / ``--to opencv-stereo``."""
-    from . import export_rig
-
-    kwargs = dict(
-        region=args.region,
-        max_incidence_deg=args.max_incidence_deg,
-        n_samples=args.samples,
-        source=str(args.calibration),
-    )
-    if args.target == "kalibr":
-        model, per_camera = export_rig.parse_kalibr_models(args.kalibr_model)
-        result = export_rig.kalibr_camchain(calib, model, per_camera, **kwargs)
-    else:
-        cameras = None
-        if args.stereo_cameras:
-            cameras = tuple(c.strip() for c in args.stereo_cameras.split(","))
-        fmt = export_rig.stereo_format(args.output)
-        result = export_rig.opencv_stereo(
-            calib, cameras=cameras, model=args.stereo_model, fmt=fmt, **kwargs
-        )
-    path = export_rig.write_rig_export(result, args.output)
-    print(f"wrote {path}")
-    print(result.summary())
-    bad = [
-        cid
-        for cid, fit in result.fits.items()
-        if not (fit.rms_px <= args.max_rms_px) or not fit.converged
-    ]
-    if bad:
-        logger.warning(
-            "camera(s) %s: fit RMS exceeds %g px or the fit did not converge: the exported "
-            "model does not reproduce the calibration",
-            ", ".join(bad),
-            args.max_rms_px,
-        )
-        return 1
-    return 0
-
-
-def run_cli(args) -> int:
-    """Run ``gtsam-sphere export``: 0 on success, 1 if the fit is poor (bad input raises)."""
+def check_target_options(args) -> None:
+    """Refuse an option meant for another ``--to`` target (``OptionsError`` naming it)."""
     from ..core.errors import OptionsError
-    from ..io.calibration import load_calibration
 
     for option, given, target in (
         ("--kalibr-model", getattr(args, "kalibr_model", None), "kalibr"),
@@ -1334,12 +1293,18 @@ def run_cli(args) -> int:
     ):
         if given and args.target != target:
             raise OptionsError(f"{option} applies to --to {target}, not --to {args.target}")
+
+
+def run_cli(args) -> int:
+    """Run ``gtsam-sphere export``: 0 on success, 1 if the fit is poor (bad input raises)."""
+    from ..core.errors import OptionsError
+    from ..io.calibration import load_calibration
+
+    check_target_options(args)
+    if args.target in RIG_TARGETS:  # export_rig.run_cli (the command line routes it)
+        raise OptionsError(f"--to {args.target} is a rig export: run it with export_rig.run_cli")
     calib = load_calibration(args.calibration)
     is_rig = hasattr(calib, "camera_ids")
-    if args.target in RIG_TARGETS:
-        if args.camera is not None:
-            raise OptionsError(f"--camera applies to single-camera targets, not --to {args.target}")
-        return _run_rig_cli(args, calib)
     if is_rig:
         if args.camera is None:
             raise OptionsError(

@@ -393,3 +393,49 @@ def stereo_format(path: str | os.PathLike) -> str:
     raise OptionsError(
         f"--output {str(path)!r}: opencv-stereo writes .yaml/.yml or .json (cv2.FileStorage)"
     )
+
+
+def run_cli(args) -> int:
+    """Run ``gtsam-sphere export --to kalibr|opencv-stereo`` on a rig; 0 on success, 1 if
+    a camera's fit is poor (bad input raises)."""
+    from ..core.errors import OptionsError
+    from ..io.calibration import load_calibration
+    from .export import check_target_options
+
+    check_target_options(args)
+    if args.camera is not None:
+        raise OptionsError(f"--camera applies to single-camera targets, not --to {args.target}")
+    calib = load_calibration(args.calibration)
+
+    kwargs = dict(
+        region=args.region,
+        max_incidence_deg=args.max_incidence_deg,
+        n_samples=args.samples,
+        source=str(args.calibration),
+    )
+    if args.target == "kalibr":
+        model, per_camera = parse_kalibr_models(args.kalibr_model)
+        result = kalibr_camchain(calib, model, per_camera, **kwargs)
+    else:
+        cameras = None
+        if args.stereo_cameras:
+            cameras = tuple(c.strip() for c in args.stereo_cameras.split(","))
+        fmt = stereo_format(args.output)
+        result = opencv_stereo(calib, cameras=cameras, model=args.stereo_model, fmt=fmt, **kwargs)
+    path = write_rig_export(result, args.output)
+    print(f"wrote {path}")
+    print(result.summary())
+    bad = [
+        cid
+        for cid, fit in result.fits.items()
+        if not (fit.rms_px <= args.max_rms_px) or not fit.converged
+    ]
+    if bad:
+        logger.warning(
+            "camera(s) %s: fit RMS exceeds %g px or the fit did not converge: the exported "
+            "model does not reproduce the calibration",
+            ", ".join(bad),
+            args.max_rms_px,
+        )
+        return 1
+    return 0

@@ -1197,17 +1197,12 @@ def write_report(
     """
     source = None if isinstance(calibration_path_or_obj, Calibration) else calibration_path_or_obj
     calib = _load(calibration_path_or_obj)
-    if isinstance(calib, RigCalibration):  # calibration@2: the rig page and a page per camera
+    if isinstance(calib, RigCalibration):  # calibration@2: report_rig.write_any_report
         from ..core.errors import OptionsError
-        from .report_rig import write_rig_report
 
-        if compare_with:
-            raise OptionsError(
-                "--compare compares single-camera calibrations; a rig's report compares its "
-                "cameras on the rig page"
-            )
-        return write_rig_report(
-            calib, out_dir, title=title, source=None if source is None else str(source)
+        raise OptionsError(
+            f"{source or 'the calibration'} is a rig (calibration@2): its report is "
+            "report_rig.write_rig_report (or report_rig.write_any_report for either kind)"
         )
     others = [_load(c) for c in compare_with or []]
     out = Path(out_dir)
@@ -1370,16 +1365,10 @@ def add_cli_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run_cli(args) -> int:
-    """Run ``gtsam-sphere report``; 0 on success (bad input raises ``DatasetError``)."""
+    """Run ``gtsam-sphere report`` on a single-camera calibration; 0 on success (bad input
+    raises ``DatasetError``; a rig: :func:`gtsam_sphere.apps.report_rig.run_cli`)."""
     paths = write_report(
         args.calibration, args.output, compare_with=list(args.compare), title=args.title
     )
-    cameras = [k.split(":", 1)[1] for k in paths if k.startswith("camera:")]
-    if cameras:
-        print(
-            f"wrote {paths['html']} and {paths['markdown']} (rig page, {paths['rig'].name}) and "
-            f"a page per camera: " + ", ".join(str(paths[f"camera:{c}"]) for c in cameras)
-        )
-        return 0
     print(f"wrote {paths['html']} and {paths['markdown']} with {len(PLOTS)} plots")
     return 0

@@ -27,8 +27,10 @@ from pathlib import Path
 
 import numpy as np
 
+from ..core.errors import OptionsError
 from ..io.calibration import RigCalibration
 from .report import (
+    PLOTS,
     _html,
     _Image,
     _markdown,
@@ -380,3 +382,51 @@ def write_rig_report(
     paths["html"] = out / "index.html"
     paths["html"].write_text(_html(blocks, title), encoding="utf-8")
     return paths
+
+
+def write_any_report(
+    calibration_path_or_obj,
+    out_dir,
+    compare_with=None,
+    title: str | None = None,
+) -> dict:
+    """The report of a calibration of either kind: :func:`write_rig_report` for a rig
+    (calibration@2), :func:`~gtsam_sphere.apps.report.write_report` for one camera.
+
+    Same arguments and return value as those; ``compare_with`` (single cameras only)
+    on a rig raises ``OptionsError``.
+    """
+    from ..io.calibration import Calibration, RigCalibration, load_calibration
+
+    source = None if isinstance(calibration_path_or_obj, Calibration) else calibration_path_or_obj
+    calib = (
+        calibration_path_or_obj
+        if isinstance(calibration_path_or_obj, (Calibration, RigCalibration))
+        else load_calibration(calibration_path_or_obj)
+    )
+    if not isinstance(calib, RigCalibration):
+        return write_report(calib, out_dir, compare_with=compare_with, title=title)
+    if compare_with:
+        raise OptionsError(
+            "--compare compares single-camera calibrations; a rig's report compares its "
+            "cameras on the rig page"
+        )
+    return write_rig_report(
+        calib, out_dir, title=title, source=None if source is None else str(source)
+    )
+
+
+def run_cli(args) -> int:
+    """Run ``gtsam-sphere report``; 0 on success (bad input raises ``DatasetError``)."""
+    paths = write_any_report(
+        args.calibration, args.output, compare_with=list(args.compare), title=args.title
+    )
+    cameras = [k.split(":", 1)[1] for k in paths if k.startswith("camera:")]
+    if cameras:
+        print(
+            f"wrote {paths['html']} and {paths['markdown']} (rig page, {paths['rig'].name}) and "
+            f"a page per camera: " + ", ".join(str(paths[f"camera:{c}"]) for c in cameras)
+        )
+        return 0
+    print(f"wrote {paths['html']} and {paths['markdown']} with {len(PLOTS)} plots")
+    return 0

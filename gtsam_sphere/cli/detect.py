@@ -21,6 +21,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args) -> int:
     """Run ``gtsam-sphere detect``."""
+    if getattr(args, "camera", None):  # a folder per camera: a rig, dataset@2
+        from ..apps import detect_rig
+
+        return detect_rig.run_cli(args)
     from ..apps import detect
 
     return detect.run_cli(args)

@@ -23,4 +23,8 @@ def run(args) -> int:
     """Run ``gtsam-sphere export``."""
     from ..apps import export
 
+    if args.target in export.RIG_TARGETS:  # kalibr camchain, OpenCV stereo: a rig
+        from ..apps import export_rig
+
+        return export_rig.run_cli(args)
     return export.run_cli(args)

@@ -21,6 +21,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args) -> int:
     """Run ``gtsam-sphere report``."""
-    from ..apps import report
+    from ..apps import report_rig
 
-    return report.run_cli(args)
+    return report_rig.run_cli(args)
