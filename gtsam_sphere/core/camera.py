@@ -802,22 +802,44 @@ class SphereCamera:
         ideal[:, 1] = scale * y
         return ideal, alpha
 
-    def _alpha_of_radius(self, r: np.ndarray) -> tuple[np.ndarray, float]:
-        """Incidence ``alpha`` (N,) with ``g(alpha) = r`` (radial mapping) and ``g(max_alpha)``.
+    def _g_tables(self):
+        """Cached tables of the radial mapping up to :meth:`max_alpha_rad`.
 
-        A cached table of ``g`` (4097 nodes up to :meth:`max_alpha_rad`) gives a
-        start and a bracket, then safeguarded Newton steps (:func:`radial_g_horner`)
-        on the points not yet converged. ``r`` beyond the table: ``max_alpha``.
+        ``grid, g_grid``: ``g`` at 4097 angles (a bracket for any radius);
+        ``cells``: per cell of a uniform grid of 4097 radii on ``[0, g(a_top)]``
+        (``a_top`` 10 deg past :meth:`valid_alpha_rad`, at most ``max_alpha``: a
+        polynomial ``g`` can grow by orders of magnitude past the data), the cubic
+        Hermite polynomial in the cell's local coordinate of the inverse
+        ``alpha(r)`` (four arrays), for a start within about 1e-13 rad.
         """
         coeffs, warp = self._radial_coeffs(), self._radial_warp()
         a_max = self.max_alpha_rad()
-        key = (tuple(coeffs), warp, a_max)
+        a_top = min(a_max, self.valid_alpha_rad() + math.radians(10.0))
+        key = (tuple(coeffs), warp, a_max, a_top)
         cached = getattr(self, "_g_cache", None)
-        if cached is None or cached[0] != key:
-            grid = np.linspace(0.0, a_max, 4097)
-            cached = (key, grid, radial_g(grid, coeffs, warp=warp))
-            self._g_cache = cached
-        _, grid, g_grid = cached
+        if cached is not None and cached[0] == key:
+            return cached[1]
+        grid = np.linspace(0.0, a_max, 4097)
+        g_grid = radial_g(grid, coeffs, warp=warp)
+        g_top = float(radial_g(np.array([a_top]), coeffs, warp=warp)[0])
+        r_nodes = np.linspace(0.0, g_top, 4097)
+        h = r_nodes[1] - r_nodes[0]
+        a_nodes = self._alpha_bracketed(r_nodes, grid, g_grid)
+        _, dg = radial_g_horner(a_nodes, coeffs, warp, derivative=True)
+        with np.errstate(divide="ignore"):
+            m = np.where(dg > 0, h / dg, 0.0)  # slope in the cell's unit (0 at a fold: safe)
+        m = np.minimum(m, 4.0 * (a_max / 4096.0))
+        a0, a1, m0, m1 = a_nodes[:-1], a_nodes[1:], m[:-1], m[1:]
+        cells = (a0, m0, 3.0 * (a1 - a0) - 2.0 * m0 - m1, 2.0 * (a0 - a1) + m0 + m1)
+        tables = {"grid": grid, "g_grid": g_grid, "inv_h": 1.0 / h, "cells": cells}
+        self._g_cache = (key, tables)
+        return tables
+
+    def _alpha_bracketed(self, r: np.ndarray, grid: np.ndarray, g_grid: np.ndarray) -> np.ndarray:
+        """``alpha`` (N,) with ``g(alpha) = r``: a start and bracket from the table of ``g``,
+        then safeguarded Newton (bisection when a step leaves the bracket)."""
+        coeffs, warp = self._radial_coeffs(), self._radial_warp()
+        a_max = grid[-1]
         alpha = np.interp(r, g_grid, grid)
         # the grid is uniform in alpha: the cell of the interpolated start brackets the root
         # (g increases on it), one cell more on each side against rounding
@@ -829,7 +851,7 @@ class SphereCamera:
         beyond = r > g_grid[-1]
         lo = np.where(beyond, a_max, lo)
         active = np.flatnonzero(np.isfinite(r) & ~beyond)
-        for _ in range(40):
+        for _ in range(60):
             if len(active) == 0:
                 break
             a = alpha[active]
@@ -845,7 +867,65 @@ class SphereCamera:
             alpha[active] = np.where(np.abs(f) > 0, new, a)
             lo[active], hi[active] = lo_a, hi_a
             active = active[moving]
-        return alpha, float(g_grid[-1])
+        return alpha
+
+    def _alpha_of_radius(self, r: np.ndarray) -> tuple[np.ndarray, float]:
+        """Incidence ``alpha`` (N,) with ``g(alpha) = r`` (radial mapping) and ``g(max_alpha)``.
+
+        The cubic Hermite table of the inverse (:meth:`_g_tables`) and one Newton
+        step (:func:`radial_g_horner`); the few points where that step is not
+        clearly final (near the fold of ``g``, where the inverse is steep) are
+        solved by :meth:`_alpha_bracketed`. ``r`` beyond the table: ``max_alpha``.
+        """
+        tables = self._g_tables()
+        coeffs, warp = self._radial_coeffs(), self._radial_warp()
+        n_cells = len(tables["cells"][0])
+        with np.errstate(invalid="ignore"):
+            x = r * tables["inv_h"]
+            past = ~(x <= n_cells)  # beyond the Hermite table (or NaN): the bracketed solve
+            x = np.clip(np.nan_to_num(x), 0.0, float(n_cells))
+        j = np.minimum(x.astype(np.intp), n_cells - 1)
+        t = x - j
+        c0, c1, c2, c3 = (c.take(j) for c in tables["cells"])
+        alpha = c0 + t * (c1 + t * (c2 + t * c3))
+        g, dg = radial_g_horner(alpha, coeffs, warp, derivative=True)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            step = (g - r) / dg
+            alpha = alpha - step
+            doubt = past | ~(np.abs(step) < 1e-7) | ~(dg > 1e-3)
+        g_max = float(tables["g_grid"][-1])
+        doubt &= np.isfinite(r) & (r <= g_max)
+        if doubt.any():
+            alpha[doubt] = self._alpha_bracketed(r[doubt], tables["grid"], tables["g_grid"])
+        return alpha, g_max
+
+    def _unproject_radial_fast(self, uv_px: np.ndarray) -> np.ndarray | None:
+        """:meth:`unproject` of the radial mapping on the tables; None if they do not apply."""
+        uv = check_uv(uv_px)
+        if self.correction is not None:
+            table = self.distortion_table()
+            if table is None:
+                return None
+            dist = table.predict(uv)
+        elif self.brown:
+            dist = brown_distortion(uv - self.principal_point_px, self.brown, self.brown_scale_px)
+        else:
+            dist = np.zeros_like(uv)
+        inv_c = 1.0 / self.c
+        with np.errstate(invalid="ignore", over="ignore"):
+            mx = (uv[:, 0] - self.xp - dist[:, 0]) * inv_c
+            my = (uv[:, 1] - self.yp - dist[:, 1]) * inv_c
+            r = np.hypot(mx, my)
+        alpha, g_max = self._alpha_of_radius(r)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            scale = np.where(r > 0, np.sin(alpha) / r, 0.0)
+        rays = np.empty((len(uv), 3))
+        rays[:, 0] = scale * mx
+        rays[:, 1] = scale * my
+        rays[:, 2] = np.cos(alpha)
+        with np.errstate(invalid="ignore"):
+            rays[~(r <= g_max * (1 + 1e-12))] = np.nan
+        return rays
 
     def _learned(self, uv: np.ndarray, exact: bool = False) -> np.ndarray:
         """The learned correction at raw pixels (N, 2): the table, or ``exact`` the model."""
@@ -1103,31 +1183,8 @@ class SphereCamera:
     def _invert_table(
         w: np.ndarray, table: CorrectionTable, max_iterations: int, tol_px: float
     ) -> np.ndarray:
-        """Raw pixels ``uv`` (N, 2) with ``uv - table(uv) = w``: the fixed point on the table.
-
-        Each sweep updates only the points that moved by ``tol_px`` or more in
-        the previous one (no per-point Python; the table's field moves by a
-        few 1e-3 px per px, so each sweep gains two to three digits).
-        Newton steps with the bilinear cell's own Jacobian, so one or two
-        sweeps reach ``tol_px`` (a plain fixed point would need four to six).
-        """
-        uv = w + table.predict(w)
-        active = np.flatnonzero(np.isfinite(uv).all(axis=1))
-        for _ in range(max_iterations):
-            if len(active) == 0:
-                break
-            x = uv[active]
-            t, J = table.predict_with_jacobian(x)
-            f = x - t - w[active]  # residual of uv - table(uv) = w
-            a, b = 1.0 - J[:, 0, 0], -J[:, 0, 1]
-            c, d = -J[:, 1, 0], 1.0 - J[:, 1, 1]
-            det = a * d - b * c
-            step = np.empty_like(f)
-            step[:, 0] = (d * f[:, 0] - b * f[:, 1]) / det
-            step[:, 1] = (a * f[:, 1] - c * f[:, 0]) / det
-            uv[active] = x - step
-            active = active[np.any(np.abs(step) >= tol_px, axis=1)]
-        return uv
+        """Raw pixels ``uv`` (N, 2) with ``uv - table(uv) = w`` (:meth:`CorrectionTable.invert`)."""
+        return table.invert(w, max_iterations, tol_px)
 
     # -- inversion of the Brown map --------------------------------------------------------------
 
@@ -1481,6 +1538,10 @@ class SphereCamera:
             the radial mapping). Pixels beyond the valid field still get
             their ray: :meth:`valid_pixel_mask` tells them apart.
         """
+        if not exact and self.radial is not None:
+            fast = self._unproject_radial_fast(uv_px)
+            if fast is not None:
+                return fast
         with np.errstate(invalid="ignore", over="ignore"):
             m = self.ideal_from_pixels(uv_px, exact) / self.c
         bad = ~np.isfinite(m).all(axis=1)
@@ -1497,16 +1558,6 @@ class SphereCamera:
             return rays
         with np.errstate(over="ignore"):
             r = np.hypot(m[:, 0], m[:, 1])
-        if not exact:
-            alpha, g_max = self._alpha_of_radius(r)
-            with np.errstate(invalid="ignore", divide="ignore"):
-                scale = np.where(r > 0, np.sin(alpha) / r, 1.0)
-            rays = np.empty((len(m), 3))
-            rays[:, 0] = scale * m[:, 0]
-            rays[:, 1] = scale * m[:, 1]
-            rays[:, 2] = np.cos(alpha)
-            rays[~(r <= g_max * (1 + 1e-12))] = np.nan
-            return rays
         a_max = self.max_alpha_rad()
         warp = self._radial_warp()
         g_max = float(radial_g(np.array([a_max]), coeffs, warp=warp)[0])

@@ -115,13 +115,12 @@ class CorrectionTable:
         """Cell index (N,) and the position in the cell ``fx, fy`` (N,) of pixels (N, 2)."""
         n_rows, n_cols = self.shape
         with np.errstate(invalid="ignore"):
-            x = (uv[:, 0] - self.origin_px[0]) * self._inv_h
-            y = (uv[:, 1] - self.origin_px[1]) * self._inv_h
-            # NaN -> 0 (its output is set to NaN by the caller); beyond the grid: its edge
-            x = np.clip(np.nan_to_num(x, nan=0.0), 0.0, n_cols - 1.0)
-            y = np.clip(np.nan_to_num(y, nan=0.0), 0.0, n_rows - 1.0)
-        ix = np.minimum(x.astype(np.intp), n_cols - 2)
-        iy = np.minimum(y.astype(np.intp), n_rows - 2)
+            # beyond the grid: its edge; NaN stays NaN in fx, fy (and so in the output)
+            # and its cell index, whatever the cast makes of it, is clipped into the table
+            x = np.clip((uv[:, 0] - self.origin_px[0]) * self._inv_h, 0.0, n_cols - 1.0)
+            y = np.clip((uv[:, 1] - self.origin_px[1]) * self._inv_h, 0.0, n_rows - 1.0)
+            ix = np.clip(x.astype(np.intp), 0, n_cols - 2)
+            iy = np.clip(y.astype(np.intp), 0, n_rows - 2)
         return iy * (n_cols - 1) + ix, x - ix, y - iy
 
     def predict(self, uv_px: np.ndarray) -> np.ndarray:
@@ -132,9 +131,9 @@ class CorrectionTable:
         out = np.empty((len(uv), 2))
         out[:, 0] = a_u + fx * b_u + fy * (c_u + fx * d_u)
         out[:, 1] = a_v + fx * b_v + fy * (c_v + fx * d_v)
-        bad = ~np.isfinite(uv).all(axis=1)
-        if bad.any():
-            out[bad] = np.nan
+        nan = np.isnan(out[:, 0]) | np.isnan(out[:, 1])  # a NaN coordinate: both NaN
+        if nan.any():
+            out[nan] = np.nan
         return out
 
     def predict_with_jacobian(self, uv_px: np.ndarray):
@@ -159,6 +158,49 @@ class CorrectionTable:
             out[bad] = np.nan
             J[bad] = np.nan
         return out, J
+
+    def invert(self, w_px: np.ndarray, max_iterations: int = 50, tol_px: float = 1e-9):
+        """Pixels ``uv`` (N, 2) with ``uv - table(uv) = w``, the raw pixel of a corrected one.
+
+        One fixed-point step from ``w``, then Newton steps with the cell's own
+        Jacobian on the points not yet done (no per-point Python). Inside a
+        cell the table is bilinear, so a Newton step that stays in its cell
+        leaves the residual ``d * sx * sy / h^2`` exactly (``d`` the cell's
+        cross term, ``s`` the step): a point is done when that, or the step
+        itself, is below ``tol_px``. Converges while the table changes by less
+        than 1 px per px. NaN rows stay NaN.
+        """
+        w = np.asarray(w_px, float).reshape(-1, 2)
+        first = self.predict(w)
+        u = w[:, 0] + first[:, 0]
+        v = w[:, 1] + first[:, 1]
+        active = np.flatnonzero(np.isfinite(u) & np.isfinite(v))
+        inv_h, inv_h2 = self._inv_h, self._inv_h**2
+        for _ in range(max_iterations):
+            if len(active) == 0:
+                break
+            us, vs = u[active], v[active]
+            cell, fx, fy = self._locate(np.column_stack([us, vs]))
+            a_u, a_v, b_u, b_v, c_u, c_v, d_u, d_v = (c.take(cell) for c in self._coef)
+            # residual of uv - table(uv) - w and its Jacobian I - d table / d uv
+            ru = us - (a_u + fx * b_u + fy * (c_u + fx * d_u)) - w[active, 0]
+            rv = vs - (a_v + fx * b_v + fy * (c_v + fx * d_v)) - w[active, 1]
+            j11 = 1.0 - (b_u + fy * d_u) * inv_h
+            j12 = -(c_u + fx * d_u) * inv_h
+            j21 = -(b_v + fy * d_v) * inv_h
+            j22 = 1.0 - (c_v + fx * d_v) * inv_h
+            det = j11 * j22 - j12 * j21
+            su = (j22 * ru - j12 * rv) / det
+            sv = (j11 * rv - j21 * ru) / det
+            u[active] = us - su
+            v[active] = vs - sv
+            # done: a step below tol, or one inside its cell whose exact leftover is
+            nx, ny = fx - su * inv_h, fy - sv * inv_h
+            inside = (nx >= 0) & (nx <= 1) & (ny >= 0) & (ny <= 1)
+            left = np.maximum(np.abs(d_u), np.abs(d_v)) * inv_h2 * np.abs(su * sv)
+            small = (np.abs(su) < tol_px) & (np.abs(sv) < tol_px)
+            active = active[~(small | (inside & (left < 0.5 * tol_px)))]
+        return np.column_stack([u, v])
 
     def agreement(self, correction, uv_px: np.ndarray) -> dict[str, float]:
         """How well the table follows ``correction`` at pixels ``uv_px`` (N, 2).
