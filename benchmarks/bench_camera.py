@@ -202,7 +202,7 @@ def main() -> None:
 
 
 class _ExactCamera:
-    """The camera with ``exact=True`` on every call (the behaviour before the table)."""
+    """The camera as before the table: ``exact=True`` everywhere, no valid-field limit."""
 
     def __init__(self, cam):
         self._cam = cam
@@ -211,7 +211,7 @@ class _ExactCamera:
         return getattr(self._cam, name)
 
     def project(self, p, *a, **k):
-        return self._cam.project(p, *a, exact=True, **k)
+        return self._cam.project(p, *a, exact=True, valid_only=False, **k)
 
     def unproject(self, uv, *a, **k):
         return self._cam.unproject(uv, *a, exact=True, **k)
