@@ -1050,7 +1050,7 @@ def classify_outliers(
         uv = dataset.uv_px[o]
         pc = xyz @ R[i].T + t[i]
         with np.errstate(invalid="ignore"):
-            proj = camera.project(pc, exact=True)
+            proj = camera.project(pc, exact=True, valid_only=False)
         d = np.linalg.norm(proj - uv, axis=1)
         d[dataset.obs_target[o]] = np.inf
         d[~np.isfinite(d)] = np.inf
