@@ -231,3 +231,28 @@ def test_opencv_fisheye_left_folds_nothing_back_and_the_table_agrees(tmp_path):
         cam.correction, check_pixels(cam.correction, W, H, n=20000, seed=9)
     )
     assert agree["rms_px"] < 0.01
+
+
+def test_visibility_by_projection_has_no_phantom_observations():
+    """Points all around the camera: those landing in the image are exactly the valid ones."""
+    # a fisheye whose polynomial turns over past the data (as real fits do): without the
+    # valid field, rays far behind the camera land inside the image
+    cam = SphereCamera(
+        W, H, 640.0, 400.0, 300.0, radial={"g3": 0.05, "g5": -0.3}, correction=_knn()
+    )
+    rng = np.random.default_rng(4)
+    pts = rng.normal(size=(200000, 3)) * rng.uniform(0.5, 20.0, (200000, 1))
+    inside = lambda uv: (  # noqa: E731
+        np.isfinite(uv).all(axis=1)
+        & (uv[:, 0] >= -0.5)
+        & (uv[:, 0] <= W - 0.5)
+        & (uv[:, 1] >= -0.5)
+        & (uv[:, 1] <= H - 0.5)
+    )
+    alpha = np.degrees(np.arctan2(np.hypot(pts[:, 0], pts[:, 1]), pts[:, 2]))
+    folded = inside(cam.project(pts, valid_only=False))
+    assert (folded & (alpha > math.degrees(cam.max_alpha_rad()) + 5)).sum() > 100  # phantoms
+    cam.observed_alpha_rad = math.radians(80.0)
+    seen = inside(cam.project(pts))
+    assert not (seen & ~cam.valid_mask(pts)).any()
+    assert seen.sum() > 0.2 * len(pts) and alpha[seen].max() <= 82.0 + 1e-9
