@@ -158,12 +158,20 @@ def test_brown_past_180_pixel_ray_pixel_round_trip(correction):
     err = np.linalg.norm(projected - uv, axis=1)
     assert np.all(err < 1e-6), (err.max(), incidence[np.argmax(err)])
     assert np.median(err) < 1e-9
-    # the projection satisfies the adjustment's residual
+    # the projection satisfies the adjustment's residual: exactly with the correction
+    # itself (exact=True), and with the correction's table on the default path
     theta, names = _theta(cam)
-    corrected = projected if correction is None else projected - correction.predict(projected)
-    e = sphere_residual(theta, names, cam.brown_scale_px, corrected, points)
-    assert np.abs(e).max() < 1e-9
-    assert np.abs(cam.pixel_residuals(projected, e)).max() < 1e-6
+    for exact in (True, False):
+        projected = cam.project(points, exact=exact)
+        if correction is None:
+            corrected = projected
+        elif exact:
+            corrected = projected - correction.predict(projected)
+        else:
+            corrected = projected - cam.correction_table().predict(projected)
+        e = sphere_residual(theta, names, cam.brown_scale_px, corrected, points)
+        assert np.abs(e).max() < 1e-9
+        assert np.abs(cam.pixel_residuals(projected, e, exact=exact)).max() < 1e-6
 
 
 def test_brown_past_180_ray_pixel_ray_and_the_sides_of_the_fold():

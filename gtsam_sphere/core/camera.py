@@ -29,6 +29,7 @@ import numpy as np
 
 from ._compat import StrEnum
 from .errors import OptionsError
+from .tabulated import CorrectionTable, choose_table
 
 BROWN_TERMS: tuple[str, ...] = ("k1", "k2", "k3", "p1", "p2", "a1", "a2")
 RADIAL_TERMS: tuple[str, ...] = ("g3", "g5", "g7", "g9", "g11", "g13")
@@ -40,6 +41,11 @@ ALPHA0_RAD = math.pi / 2
 #: a fold of the Brown map farther than this many ``brown_scale_px`` from the principal
 #: point counts as none (tiny terms fold only astronomically far out)
 FOLD_HORIZON = 1e6
+#: margin (rad, 2 deg) beyond the largest observed incidence angle up to which
+#: :meth:`SphereCamera.project` still answers: a calibration extrapolates this little
+#: reliably (the radial polynomial and the nearest-neighbour field hold their shape),
+#: and points on the edge of the observed field stay projectable
+VALID_MARGIN_RAD = math.radians(2.0)
 
 
 class Model(StrEnum):
@@ -261,6 +267,53 @@ def radial_g(
         return g, dh, ALPHA0_RAD * powers
     dphi_da = k / (cos_a**2 + (k * sin_a) ** 2)
     return g, dh * dphi_da / k, ALPHA0_RAD * powers / k
+
+
+def radial_g_horner(
+    alpha: np.ndarray, coeffs: np.ndarray, warp: float | None = None, derivative: bool = False
+):
+    """:func:`radial_g` (and ``dg/dalpha``) by Horner's rule in ``(x / A0)^2``: no powers.
+
+    The same function as :func:`radial_g` to rounding (about 1e-16 relative),
+    without the coefficient Jacobian; used by the fast paths of
+    :meth:`SphereCamera.project` and :meth:`SphereCamera.unproject`.
+    """
+    a = np.asarray(alpha, float)
+    if warp is None:
+        x = a
+    else:
+        k = math.exp(warp)
+        sin_a, cos_a = np.sin(a), np.cos(a)
+        x = np.arctan2(k * sin_a, cos_a)
+    c = np.asarray(coeffs, float)
+    while len(c) and c[-1] == 0.0:
+        c = c[:-1]
+    t = x * (1.0 / ALPHA0_RAD)
+    t2 = t * t
+    if len(c):
+        poly = np.full_like(t, c[-1])
+        for ci in c[-2::-1]:
+            poly *= t2
+            poly += ci
+        h = x + ALPHA0_RAD * t * t2 * poly
+    else:
+        h = x.copy()
+    g = h if warp is None else h / k
+    if not derivative:
+        return g
+    if len(c):
+        n = np.arange(len(c))
+        dc = (2 * n + 3) * c
+        dpoly = np.full_like(t, dc[-1])
+        for ci in dc[-2::-1]:
+            dpoly *= t2
+            dpoly += ci
+        dh = 1.0 + t2 * dpoly
+    else:
+        dh = np.ones_like(t)
+    if warp is None:
+        return g, dh
+    return g, dh * (k / (cos_a**2 + (k * sin_a) ** 2)) / k
 
 
 def ideal_projection(
@@ -598,6 +651,15 @@ class SphereCamera:
         ``{"g3": .., "g5": ..}``: the radial mapping ``c * g(alpha)`` of
         :func:`radial_g` (``{}`` is equidistant); a key ``"w"`` (:data:`WARP_TERM`)
         warps its variable (:func:`radial_warp`).
+    observed_alpha_rad : float or None
+        Largest incidence angle (rad) of the observations the calibration used:
+        the field its data support. :meth:`project` answers up to it plus
+        :data:`VALID_MARGIN_RAD` (:meth:`valid_alpha_rad`) and gives NaN beyond;
+        ``None`` (a camera not from data): no limit beyond the model's own.
+
+    The learned correction is evaluated through a table
+    (:meth:`correction_table`, built on first use and cached; ``exact=True``
+    on the methods that use the correction asks the correction itself).
     """
 
     width: int
@@ -609,6 +671,12 @@ class SphereCamera:
     brown_scale_px: float = 0.0
     correction: Correction | None = None
     radial: dict[str, float] | None = None
+    observed_alpha_rad: float | None = None
+    # lazily built caches (not compared, not printed, not written to files)
+    _table: CorrectionTable | None = field(default=None, init=False, repr=False, compare=False)
+    _table_key: tuple | None = field(default=None, init=False, repr=False, compare=False)
+    _max_alpha_key: tuple | None = field(default=None, init=False, repr=False, compare=False)
+    _max_alpha: float = field(default=math.pi, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         for name in ("width", "height", "c"):
@@ -625,6 +693,11 @@ class SphereCamera:
                 raise ValueError(f"SphereCamera: {kind} terms must be finite, got {bad}")
         if self.brown_scale_px <= 0:
             self.brown_scale_px = 0.5 * max(self.width, self.height)
+        if self.observed_alpha_rad is not None:
+            a = float(self.observed_alpha_rad)
+            if not (np.isfinite(a) and 0 < a <= math.pi):
+                raise ValueError(f"SphereCamera: observed_alpha_rad must be in (0, pi], got {a!r}")
+            self.observed_alpha_rad = a
 
     @property
     def principal_point_px(self) -> np.ndarray:
@@ -646,29 +719,300 @@ class SphereCamera:
             return None
         return float(self.radial[WARP_TERM])
 
-    def distortion_px(self, uv_px: np.ndarray) -> np.ndarray:
+    # -- the tabulated correction and the valid field -------------------------------------------
+
+    def correction_table(self, spacing_px: float | None = None) -> CorrectionTable | None:
+        """The learned correction tabulated on a pixel grid (None without a correction).
+
+        Built on first use (:func:`~gtsam_sphere.core.tabulated.choose_table`:
+        4 px nodes, finer while it differs from the correction by more than
+        0.01 px RMS around the training pixels) and cached on the camera until
+        :attr:`correction` is replaced or another ``spacing_px`` is asked for
+        (a correction changed in place needs :meth:`clear_cache`). Not written to
+        calibration files.
+        """
+        if self.correction is None:
+            return None
+        key = self._table_key
+        fresh = key is not None and key[0] is self.correction
+        if not fresh or (spacing_px is not None and key[1] != spacing_px):
+            self._table = choose_table(self.correction, self.width, self.height, spacing_px)
+            self._table_key = (self.correction, spacing_px)
+        return self._table
+
+    def clear_cache(self) -> None:
+        """Forget the cached correction table and field limit (after changing them in place)."""
+        self._table = None
+        self._table_key = None
+        self._max_alpha_key = None
+        self._dist_cache = None
+        self._g_cache = None
+
+    def _tabulable(self) -> bool:
+        """Brown terms that cannot fold inside the table: tabulated with the correction.
+
+        The radial mapping (``k1-k3`` refused: decentering and affinity only) or
+        no Brown terms, and the Brown map one-to-one over the image and its margin.
+        """
+        if not self.brown:
+            return True
+        if self.radial is None or any(self.brown.get(t, 0.0) for t in ("k1", "k2", "k3")):
+            return False
+        reach = math.hypot(self.width, self.height) + 64.0
+        return self._fold_free_radius() * self.brown_scale_px > reach
+
+    def distortion_table(self) -> CorrectionTable | None:
+        """The whole measurement correction ``distortion_px`` tabulated (fast paths).
+
+        The learned table's nodes with the Brown terms added at each node
+        (``learned + brown(node - learned - pp)``), so that one lookup gives the
+        corrected pixel and :meth:`project` needs one fixed point. None without a
+        learned correction or when the Brown map may fold (:meth:`_tabulable`).
+        """
+        learned = self.correction_table()
+        if learned is None or not self._tabulable():
+            return None
+        if not self.brown:
+            return learned
+        key = (learned, self.xp, self.yp, tuple(sorted(self.brown.items())), self.brown_scale_px)
+        cached = getattr(self, "_dist_cache", None)
+        if cached is not None and cached[0][0] is learned and cached[0][1:] == key[1:]:
+            return cached[1]
+        nodes = learned.nodes()
+        lv = learned.values.reshape(-1, 2)
+        total = lv + brown_distortion(
+            nodes - lv - self.principal_point_px, self.brown, self.brown_scale_px
+        )
+        table = learned.with_values(total.reshape(learned.values.shape))
+        self._dist_cache = (key, table)
+        return table
+
+    def _ideal_radial_fast(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Ideal points (N, 2) px of the radial mapping and the incidence angles (N,)."""
+        x, y, z = p[:, 0], p[:, 1], p[:, 2]
+        rho = np.hypot(x, y)
+        alpha = np.arctan2(rho, z)
+        g = radial_g_horner(alpha, self._radial_coeffs(), self._radial_warp())
+        with np.errstate(invalid="ignore", divide="ignore"):
+            scale = self.c * g / rho
+        # on the axis the ideal point is the principal point; P = 0 and the antipode: NaN
+        scale = np.where(rho > 0, scale, np.where(z > 0, 0.0, np.nan))
+        ideal = np.empty((len(p), 2))
+        ideal[:, 0] = scale * x
+        ideal[:, 1] = scale * y
+        return ideal, alpha
+
+    def _g_tables(self):
+        """Cached tables of the radial mapping up to :meth:`max_alpha_rad`.
+
+        ``grid, g_grid``: ``g`` at 4097 angles (a bracket for any radius);
+        ``cells``: per cell of a uniform grid of 4097 radii on ``[0, g(a_top)]``
+        (``a_top`` 10 deg past :meth:`valid_alpha_rad`, at most ``max_alpha``: a
+        polynomial ``g`` can grow by orders of magnitude past the data), the cubic
+        Hermite polynomial in the cell's local coordinate of the inverse
+        ``alpha(r)`` (four arrays), for a start within about 1e-13 rad.
+        """
+        coeffs, warp = self._radial_coeffs(), self._radial_warp()
+        a_max = self.max_alpha_rad()
+        a_top = min(a_max, self.valid_alpha_rad() + math.radians(10.0))
+        key = (tuple(coeffs), warp, a_max, a_top)
+        cached = getattr(self, "_g_cache", None)
+        if cached is not None and cached[0] == key:
+            return cached[1]
+        grid = np.linspace(0.0, a_max, 4097)
+        g_grid = radial_g(grid, coeffs, warp=warp)
+        g_top = float(radial_g(np.array([a_top]), coeffs, warp=warp)[0])
+        r_nodes = np.linspace(0.0, g_top, 4097)
+        h = r_nodes[1] - r_nodes[0]
+        a_nodes = self._alpha_bracketed(r_nodes, grid, g_grid)
+        _, dg = radial_g_horner(a_nodes, coeffs, warp, derivative=True)
+        with np.errstate(divide="ignore"):
+            m = np.where(dg > 0, h / dg, 0.0)  # slope in the cell's unit (0 at a fold: safe)
+        m = np.minimum(m, 4.0 * (a_max / 4096.0))
+        a0, a1, m0, m1 = a_nodes[:-1], a_nodes[1:], m[:-1], m[1:]
+        cells = (a0, m0, 3.0 * (a1 - a0) - 2.0 * m0 - m1, 2.0 * (a0 - a1) + m0 + m1)
+        tables = {"grid": grid, "g_grid": g_grid, "inv_h": 1.0 / h, "cells": cells}
+        self._g_cache = (key, tables)
+        return tables
+
+    def _alpha_bracketed(self, r: np.ndarray, grid: np.ndarray, g_grid: np.ndarray) -> np.ndarray:
+        """``alpha`` (N,) with ``g(alpha) = r``: a start and bracket from the table of ``g``,
+        then safeguarded Newton (bisection when a step leaves the bracket)."""
+        coeffs, warp = self._radial_coeffs(), self._radial_warp()
+        a_max = grid[-1]
+        alpha = np.interp(r, g_grid, grid)
+        # the grid is uniform in alpha: the cell of the interpolated start brackets the root
+        # (g increases on it), one cell more on each side against rounding
+        with np.errstate(invalid="ignore"):
+            j = np.clip(np.nan_to_num(alpha * ((len(grid) - 1) / a_max)), 0, len(grid) - 1)
+        j = j.astype(np.intp)
+        lo = grid[np.maximum(j - 1, 0)]
+        hi = grid[np.minimum(j + 2, len(grid) - 1)]
+        beyond = r > g_grid[-1]
+        lo = np.where(beyond, a_max, lo)
+        active = np.flatnonzero(np.isfinite(r) & ~beyond)
+        for _ in range(60):
+            if len(active) == 0:
+                break
+            a = alpha[active]
+            g, dg = radial_g_horner(a, coeffs, warp, derivative=True)
+            f = g - r[active]
+            lo_a = np.where(f < 0, a, lo[active])
+            hi_a = np.where(f > 0, a, hi[active])
+            with np.errstate(invalid="ignore", divide="ignore"):
+                step = a - f / dg
+            bisect = ~np.isfinite(step) | (step < lo_a) | (step > hi_a)
+            new = np.where(bisect, 0.5 * (lo_a + hi_a), step)
+            moving = (np.abs(new - a) > 4e-16 * np.maximum(a, 1e-300)) & (np.abs(f) > 1e-16)
+            alpha[active] = np.where(np.abs(f) > 0, new, a)
+            lo[active], hi[active] = lo_a, hi_a
+            active = active[moving]
+        return alpha
+
+    def _alpha_of_radius(self, r: np.ndarray) -> tuple[np.ndarray, float]:
+        """Incidence ``alpha`` (N,) with ``g(alpha) = r`` (radial mapping) and ``g(max_alpha)``.
+
+        The cubic Hermite table of the inverse (:meth:`_g_tables`) and one Newton
+        step (:func:`radial_g_horner`); the few points where that step is not
+        clearly final (near the fold of ``g``, where the inverse is steep) are
+        solved by :meth:`_alpha_bracketed`. ``r`` beyond the table: ``max_alpha``.
+        """
+        tables = self._g_tables()
+        coeffs, warp = self._radial_coeffs(), self._radial_warp()
+        n_cells = len(tables["cells"][0])
+        with np.errstate(invalid="ignore"):
+            x = r * tables["inv_h"]
+            past = ~(x <= n_cells)  # beyond the Hermite table (or NaN): the bracketed solve
+            x = np.clip(np.nan_to_num(x), 0.0, float(n_cells))
+        j = np.minimum(x.astype(np.intp), n_cells - 1)
+        t = x - j
+        c0, c1, c2, c3 = (c.take(j) for c in tables["cells"])
+        alpha = c0 + t * (c1 + t * (c2 + t * c3))
+        g, dg = radial_g_horner(alpha, coeffs, warp, derivative=True)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            step = (g - r) / dg
+            alpha = alpha - step
+            doubt = past | ~(np.abs(step) < 1e-7) | ~(dg > 1e-3)
+        g_max = float(tables["g_grid"][-1])
+        doubt &= np.isfinite(r) & (r <= g_max)
+        if doubt.any():
+            alpha[doubt] = self._alpha_bracketed(r[doubt], tables["grid"], tables["g_grid"])
+        return alpha, g_max
+
+    def _unproject_radial_fast(self, uv_px: np.ndarray) -> np.ndarray | None:
+        """:meth:`unproject` of the radial mapping on the tables; None if they do not apply."""
+        uv = check_uv(uv_px)
+        if self.correction is not None:
+            table = self.distortion_table()
+            if table is None:
+                return None
+            dist = table.predict(uv)
+        elif self.brown:
+            dist = brown_distortion(uv - self.principal_point_px, self.brown, self.brown_scale_px)
+        else:
+            dist = np.zeros_like(uv)
+        inv_c = 1.0 / self.c
+        with np.errstate(invalid="ignore", over="ignore"):
+            mx = (uv[:, 0] - self.xp - dist[:, 0]) * inv_c
+            my = (uv[:, 1] - self.yp - dist[:, 1]) * inv_c
+            r = np.hypot(mx, my)
+        alpha, g_max = self._alpha_of_radius(r)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            scale = np.where(r > 0, np.sin(alpha) / r, 0.0)
+        rays = np.empty((len(uv), 3))
+        rays[:, 0] = scale * mx
+        rays[:, 1] = scale * my
+        rays[:, 2] = np.cos(alpha)
+        with np.errstate(invalid="ignore"):
+            rays[~(r <= g_max * (1 + 1e-12))] = np.nan
+        return rays
+
+    def _learned(self, uv: np.ndarray, exact: bool = False) -> np.ndarray:
+        """The learned correction at raw pixels (N, 2): the table, or ``exact`` the model."""
+        if exact:
+            return self.correction.predict(uv)
+        return self.correction_table().predict(uv)
+
+    def valid_alpha_rad(self) -> float:
+        """Largest incidence angle (rad) :meth:`project` answers for by default.
+
+        The smaller of the lens's one-to-one field (:meth:`max_alpha_rad` for the
+        radial mapping; pi for the sphere mapping, whose Brown fold
+        :meth:`project` handles) and the observed field plus the margin
+        (``observed_alpha_rad + VALID_MARGIN_RAD``, when known).
+        """
+        limit = math.pi if self.radial is None else self.max_alpha_rad()
+        if self.observed_alpha_rad is not None:
+            limit = min(limit, self.observed_alpha_rad + VALID_MARGIN_RAD)
+        return float(limit)
+
+    def valid_mask(self, points_cam: np.ndarray) -> np.ndarray:
+        """Camera-frame points (N, 3) whose ray lies in the valid field, (N,) bool.
+
+        ``incidence <= valid_alpha_rad()`` (and the point is finite and not the
+        perspective centre): the rays :meth:`project` answers for.
+        """
+        p = check_points_cam(points_cam)
+        with np.errstate(invalid="ignore"):
+            alpha = np.arctan2(np.hypot(p[:, 0], p[:, 1]), p[:, 2])
+            ok = np.isfinite(p).all(axis=1) & np.any(p != 0, axis=1)
+            return ok & (alpha <= self.valid_alpha_rad())
+
+    def valid_pixel_mask(self, uv_px: np.ndarray, exact: bool = False) -> np.ndarray:
+        """Raw pixels (N, 2) inside the image whose ray lies in the valid field, (N,) bool.
+
+        In ``[-0.5, width - 0.5] x [-0.5, height - 0.5]`` and :meth:`unproject`
+        gives a ray within :meth:`valid_alpha_rad` (the front half for the
+        sphere mapping without a fold, :meth:`pixel_hemisphere` with one).
+        """
+        uv = check_uv(uv_px)
+        with np.errstate(invalid="ignore"):
+            inside = (
+                (uv[:, 0] >= -0.5)
+                & (uv[:, 0] <= self.width - 0.5)
+                & (uv[:, 1] >= -0.5)
+                & (uv[:, 1] <= self.height - 0.5)
+            )
+        out = np.zeros(len(uv), bool)
+        if inside.any():
+            sub = uv[inside]
+            hemi = self.pixel_hemisphere(sub, exact=exact)
+            out[inside] = self.valid_mask(self.unproject(sub, hemisphere=hemi, exact=exact))
+        return out
+
+    def distortion_px(self, uv_px: np.ndarray, exact: bool = False) -> np.ndarray:
         """Total measurement correction at raw pixels (N, 2): learned + Brown, px.
 
         As in the adjustment: the learned field at the raw pixel, then Brown
         at the pixel it corrected, ``uv - pp - ideal = learned(uv) + brown(uv -
-        learned(uv) - pp)``.
+        learned(uv) - pp)``. The learned field from :meth:`correction_table`,
+        or with ``exact`` from the correction itself.
         """
         uv = check_uv(uv_px)
+        if not exact and self.correction is not None:
+            table = self.distortion_table()
+            if table is not None:
+                return table.predict(uv)
         delta = np.zeros_like(uv)
         if self.correction is not None:
-            delta += self.correction.predict(uv)
+            delta += self._learned(uv, exact)
         if self.brown:
             delta += brown_distortion(
                 uv - delta - self.principal_point_px, self.brown, self.brown_scale_px
             )
         return delta
 
-    def ideal_from_pixels(self, uv_px: np.ndarray) -> np.ndarray:
-        """Corrected image coordinates relative to the principal point, (N, 2) px."""
-        uv = check_uv(uv_px)
-        return uv - self.principal_point_px - self.distortion_px(uv)
+    def ideal_from_pixels(self, uv_px: np.ndarray, exact: bool = False) -> np.ndarray:
+        """Corrected image coordinates relative to the principal point, (N, 2) px.
 
-    def pixel_residuals(self, uv_px: np.ndarray, ideal_residuals_px: np.ndarray) -> np.ndarray:
+        ``exact``: the learned correction itself rather than its table.
+        """
+        uv = check_uv(uv_px)
+        return uv - self.principal_point_px - self.distortion_px(uv, exact)
+
+    def pixel_residuals(
+        self, uv_px: np.ndarray, ideal_residuals_px: np.ndarray, exact: bool = False
+    ) -> np.ndarray:
         """Residuals in raw pixels from residuals in corrected (ideal) coordinates.
 
         The adjustment's residual ``e = ideal_from_pixels(uv) - ideal(P)`` lives
@@ -691,7 +1035,7 @@ class SphereCamera:
         e = check_uv(ideal_residuals_px, "ideal_residuals_px")
         if not self.brown:
             return e.copy()
-        corrected = uv if self.correction is None else uv - self.correction.predict(uv)
+        corrected = uv if self.correction is None else uv - self._learned(uv, exact)
         _, J, _ = brown_distortion(
             corrected - self.principal_point_px, self.brown, self.brown_scale_px, jacobians=True
         )
@@ -727,7 +1071,12 @@ class SphereCamera:
         return self.c * out[0], self.c * out[1]
 
     def project(
-        self, points_cam: np.ndarray, max_iterations: int = 50, tol_px: float = 1e-9
+        self,
+        points_cam: np.ndarray,
+        max_iterations: int = 50,
+        tol_px: float = 1e-9,
+        exact: bool = False,
+        valid_only: bool = True,
     ) -> np.ndarray:
         """Project camera-frame points to raw pixels.
 
@@ -759,12 +1108,22 @@ class SphereCamera:
             learned correction as a fixed point ``uv = w + learned(uv)``,
             which converges when the learned correction changes by less than
             1 px per px (Lipschitz constant < 1).
+        exact : bool
+            False (default): the fixed point uses the tabulated correction
+            (:meth:`correction_table`, within 0.01 px RMS of the correction);
+            True: the correction itself (a kNN search per point and iteration).
+        valid_only : bool
+            True (default): NaN for rays past :meth:`valid_alpha_rad` (the
+            observed field plus :data:`VALID_MARGIN_RAD`, and the radial
+            mapping's one-to-one field), which the model would otherwise fold
+            back into the image. False: every ray the model has a pixel for.
 
         Returns
         -------
         uv_px : ndarray, shape (N, 2)
             NaN where the model has no pixel for the point:
 
+            - with ``valid_only``, a ray beyond :meth:`valid_alpha_rad`;
             - the perspective centre itself (``|P| = 0``);
             - sphere mapping with Brown terms, a ray within
               :meth:`fold_profile` ``gap_deg`` of 90 deg on an azimuth where
@@ -778,9 +1137,26 @@ class SphereCamera:
               azimuth meets there.
         """
         p = check_points_cam(points_cam)
+        alpha = None
         with np.errstate(invalid="ignore", divide="ignore"):
-            ideal = self.c * ideal_projection(p, self._radial_coeffs(), warp=self._radial_warp())
+            if not exact and self.radial is not None:
+                ideal, alpha = self._ideal_radial_fast(p)
+            else:
+                ideal = self.c * ideal_projection(
+                    p, self._radial_coeffs(), warp=self._radial_warp()
+                )
+        if valid_only:
+            limit = self.valid_alpha_rad()
+            if limit < math.pi:
+                with np.errstate(invalid="ignore"):
+                    if alpha is None:
+                        alpha = np.arctan2(np.hypot(p[:, 0], p[:, 1]), p[:, 2])
+                    ideal[~(alpha <= limit)] = np.nan
         pp = self.principal_point_px
+        if not exact and self.correction is not None:
+            table = self.distortion_table()
+            if table is not None:  # one fixed point on the whole tabulated correction
+                return self._invert_table(pp + ideal, table, max_iterations, tol_px)
         uv = pp + ideal
         if not self.brown and self.correction is None:
             return uv
@@ -792,6 +1168,8 @@ class SphereCamera:
         if self.correction is None:
             return w
         # 2. the raw pixel: uv - learned(uv) = w (fixed point)
+        if not exact:
+            return self._invert_table(w, self.correction_table(), max_iterations, tol_px)
         uv = w.copy()
         for _ in range(max_iterations):
             new = w + self.correction.predict(np.nan_to_num(uv))
@@ -800,6 +1178,13 @@ class SphereCamera:
             if np.all(~np.isfinite(step) | (np.abs(step) < tol_px)):
                 break
         return uv
+
+    @staticmethod
+    def _invert_table(
+        w: np.ndarray, table: CorrectionTable, max_iterations: int, tol_px: float
+    ) -> np.ndarray:
+        """Raw pixels ``uv`` (N, 2) with ``uv - table(uv) = w`` (:meth:`CorrectionTable.invert`)."""
+        return table.invert(w, max_iterations, tol_px)
 
     # -- inversion of the Brown map --------------------------------------------------------------
 
@@ -1008,12 +1393,17 @@ class SphereCamera:
         coeffs = self._radial_coeffs()
         if coeffs is None:
             return math.pi / 2
+        key = (tuple(coeffs), self._radial_warp())
+        if self._max_alpha_key == key:
+            return self._max_alpha
         grid = np.linspace(0.0, math.pi, 2049)
         _, dg, _ = radial_g(grid, coeffs, derivative=True, warp=self._radial_warp())
         bad = np.flatnonzero(dg <= 0)
-        return float(grid[bad[0] - 1]) if len(bad) else math.pi
+        self._max_alpha = float(grid[bad[0] - 1]) if len(bad) else math.pi
+        self._max_alpha_key = key
+        return self._max_alpha
 
-    def pixel_hemisphere(self, uv_px: np.ndarray) -> np.ndarray:
+    def pixel_hemisphere(self, uv_px: np.ndarray, exact: bool = False) -> np.ndarray:
         """The half of the image sphere on which :meth:`project` puts each pixel's ray.
 
         Sphere mapping with Brown terms: ``-1`` (back, beyond the fold) where
@@ -1041,7 +1431,7 @@ class SphereCamera:
         h = np.ones(len(uv))
         if self.radial is not None or not self.brown:
             return h
-        w = uv if self.correction is None else uv - self.correction.predict(uv)
+        w = uv if self.correction is None else uv - self._learned(uv, exact)
         xbar = w - self.principal_point_px
         f, _, det = self._brown_map(w, np.zeros_like(w))
         with np.errstate(invalid="ignore", over="ignore"):
@@ -1119,7 +1509,9 @@ class SphereCamera:
             out["no_ray_px"][above] = s * (u_out - u_in)
         return out
 
-    def unproject(self, uv_px: np.ndarray, hemisphere: float | np.ndarray = 1.0) -> np.ndarray:
+    def unproject(
+        self, uv_px: np.ndarray, hemisphere: float | np.ndarray = 1.0, exact: bool = False
+    ) -> np.ndarray:
         """Unit rays in the camera frame for raw pixels.
 
         Parameters
@@ -1134,16 +1526,24 @@ class SphereCamera:
             which side of the fold a pixel is on. NaN gives a NaN ray. The
             radial mapping is one-to-one up to :meth:`max_alpha_rad` and
             ignores it.
+        exact : bool
+            The learned correction itself rather than its table
+            (:meth:`correction_table`).
 
         Returns
         -------
         rays : ndarray, shape (N, 3)
             NaN where the corrected point falls outside the model's image
             (the sphere's disc of radius ``c``; beyond ``g(max_alpha)`` for
-            the radial mapping).
+            the radial mapping). Pixels beyond the valid field still get
+            their ray: :meth:`valid_pixel_mask` tells them apart.
         """
+        if not exact and self.radial is not None:
+            fast = self._unproject_radial_fast(uv_px)
+            if fast is not None:
+                return fast
         with np.errstate(invalid="ignore", over="ignore"):
-            m = self.ideal_from_pixels(uv_px) / self.c
+            m = self.ideal_from_pixels(uv_px, exact) / self.c
         bad = ~np.isfinite(m).all(axis=1)
         m[bad] = np.nan
         coeffs = self._radial_coeffs()
@@ -1203,4 +1603,6 @@ class SphereCamera:
         if self.brown:
             d["brown"] = dict(self.brown)
             d["brown_scale_px"] = self.brown_scale_px
+        if self.observed_alpha_rad is not None:
+            d["observed_alpha_rad"] = self.observed_alpha_rad
         return d

@@ -1047,7 +1047,7 @@ def classify_outliers(
         uv = dataset.uv_px[o]
         pc = xyz @ R[i].T + t[i]
         with np.errstate(invalid="ignore"):
-            proj = camera.project(pc)
+            proj = camera.project(pc, exact=True, valid_only=False)
         d = np.linalg.norm(proj - uv, axis=1)
         d[dataset.obs_target[o]] = np.inf
         d[~np.isfinite(d)] = np.inf
@@ -1089,7 +1089,7 @@ def _result(dataset, problem, adj, correction, history, options, n_input_images)
     # report raw pixels (OpenCV's definition); sigma, weights and outliers stay in the
     # adjustment's own coordinates
     res_model = adj.residuals_px
-    res = camera.pixel_residuals(dataset.uv_px, res_model)
+    res = camera.pixel_residuals(dataset.uv_px, res_model, exact=True)
     res = np.where(np.isfinite(res), res, res_model)
     r_model = np.linalg.norm(res_model, axis=1)
     r_norm = np.linalg.norm(res, axis=1)
@@ -1114,6 +1114,10 @@ def _result(dataset, problem, adj, correction, history, options, n_input_images)
 
         outlier &= ~consistent_with_neighbours(dataset.uv_px, res_model)
     systematic = gross & ~outlier
+    # the field the data support (SphereCamera.valid_alpha_rad): the widest observation
+    # that is not a blunder
+    seen = inc[~outlier] if (~outlier).any() else inc
+    camera.observed_alpha_rad = float(np.radians(np.max(seen)))
     # beyond the loss threshold: Huber's weight < 1 there; Cauchy's weight < 1/2
     down = np.flatnonzero(r_model > problem.noise.loss_threshold * sigma)
     down = down[np.argsort(-r_model[down])]

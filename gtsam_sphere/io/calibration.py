@@ -313,6 +313,9 @@ def camera_from_dict(cam: dict, source: str = "<calibration>") -> SphereCamera:
             radial=None
             if mapping == "sphere"
             else {k: float(v) for k, v in cam.get("radial", {}).items()},
+            observed_alpha_rad=None
+            if cam.get("observed_alpha_rad") is None
+            else float(cam["observed_alpha_rad"]),
         )
     except KeyError as exc:
         raise DatasetError(f"{source}: camera entry misses {exc}") from None
@@ -326,6 +329,19 @@ def camera_from_dict(cam: dict, source: str = "<calibration>") -> SphereCamera:
         except (TypeError, ValueError, AttributeError) as exc:
             raise DatasetError(f"{source}: camera.correction is malformed ({exc})") from None
     return camera
+
+
+def _observed_field_from_statistics(camera: SphereCamera, statistics: dict) -> None:
+    """A file written before ``camera.observed_alpha_rad`` existed: take its statistics'.
+
+    ``statistics.max_incidence_deg`` (every calibration writes it) is the same
+    figure over all observations; without either the camera has no observed field.
+    """
+    if camera.observed_alpha_rad is not None:
+        return
+    deg = statistics.get("max_incidence_deg")
+    if isinstance(deg, (int, float)) and 0 < float(deg) <= 180:
+        camera.observed_alpha_rad = float(np.radians(float(deg)))
 
 
 def _entries(doc: dict, key: str, source: str) -> list:
@@ -412,6 +428,7 @@ def load_calibration(path: str | os.PathLike) -> Calibration | RigCalibration:
     R, t = _image_poses(images, source)
     xyz = [_finite_array(tg.get("xyz"), (3,), f"target {tg['id']!r} xyz", source) for tg in targets]
     statistics = _statistics(doc, source, "calibration@1")
+    _observed_field_from_statistics(camera, statistics)
     known = {"format", "model", "units", "camera", "images", "targets", "statistics"}
     return Calibration(
         model=str(doc.get("model", "sphere")),
@@ -473,6 +490,8 @@ def _rig_calibration_from_doc(doc: dict, source: str) -> RigCalibration:
             f"{source}: statistics.cameras must give each camera's rms_px "
             "(calibration@2 requires it)"
         )
+    for cid in camera_ids:
+        _observed_field_from_statistics(models[cid], per_camera[cid])
     known = {"format", "model", "units", "cameras", "frames", "images", "targets", "statistics"}
     return RigCalibration(
         camera_ids=camera_ids,
