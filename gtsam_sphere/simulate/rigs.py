@@ -52,12 +52,12 @@ import numpy as np
 from ..core.errors import OptionsError
 from .lenses import make_lens
 from .room import (
-    CHECKPOINTS_FORMAT,
     SimulationOptions,
     _jsonable,
     _observe,
     _room_scene,
     _write_json_atomic,
+    checkpoint_file,
 )
 
 __all__ = [
@@ -446,20 +446,10 @@ def simulate_rig(options: RigOptions | None = None) -> RigSimulation:
         ],
     }
 
-    # check points: prefer targets seen in >= 2 images (they can be triangulated)
-    well = used[n_obs_per_target[used] >= 2]
-    rest = used[n_obs_per_target[used] < 2]
-    pool = np.concatenate([rng.permutation(well), rng.permutation(rest)])
-    cp_idx = np.sort(pool[: min(options.n_checkpoints, used.size)]).astype(int)
-    cp_xyz = xyz[cp_idx] + rng.normal(0.0, options.checkpoint_noise_m, (cp_idx.size, 3))
-    checkpoints = {
-        "format": CHECKPOINTS_FORMAT,
-        "units": "m",
-        "targets": [
-            {"id": target_ids[i], "xyz": [float(v) for v in p]}
-            for i, p in zip(cp_idx, cp_xyz, strict=True)
-        ],
-    }
+    checkpoints = checkpoint_file(
+        used, n_obs_per_target, xyz, target_ids, options.n_checkpoints,
+        options.checkpoint_noise_m, rng,
+    )  # fmt: skip
 
     alpha = np.concatenate([img["alpha"] for img in images])
     per_camera = {

@@ -567,21 +567,10 @@ def _assemble(options, lens, scene: _Scene, images, rng) -> Simulation:
         "images": ds_images,
     }
 
-    # check points: prefer targets seen in >= 2 images (they can be triangulated)
-    n_cp = min(options.n_checkpoints, used.size)
-    well = used[n_obs_per_target[used] >= 2]
-    rest = used[n_obs_per_target[used] < 2]
-    pool = np.concatenate([rng.permutation(well), rng.permutation(rest)])
-    cp_idx = np.sort(pool[:n_cp])
-    cp_xyz = xyz[cp_idx] + rng.normal(0.0, options.checkpoint_noise_m, (cp_idx.size, 3))
-    checkpoints = {
-        "format": CHECKPOINTS_FORMAT,
-        "units": "m",
-        "targets": [
-            {"id": target_ids[i], "xyz": [float(v) for v in p]}
-            for i, p in zip(cp_idx, cp_xyz, strict=True)
-        ],
-    }
+    checkpoints = checkpoint_file(
+        used, n_obs_per_target, xyz, target_ids, options.n_checkpoints,
+        options.checkpoint_noise_m, rng,
+    )  # fmt: skip
 
     all_alpha = np.concatenate([img["alpha"] for img in images])
     n_obs = int(sum(img["targets"].size for img in images))
@@ -626,6 +615,33 @@ def _assemble(options, lens, scene: _Scene, images, rng) -> Simulation:
         },
     }
     return Simulation(dataset=dataset, checkpoints=checkpoints, truth=truth, lens=lens)
+
+
+def checkpoint_file(
+    used: np.ndarray,
+    n_obs_per_target: np.ndarray,
+    xyz: np.ndarray,
+    target_ids: list[str],
+    n_checkpoints: int,
+    noise_m: float,
+    rng: np.random.Generator,
+) -> dict[str, Any]:
+    """A ``checkpoints@1`` document: up to ``n_checkpoints`` of the ``used`` targets
+    (indices into ``xyz`` (T, 3), m), those seen in two or more images first (they can be
+    triangulated), their coordinates surveyed with ``noise_m`` (m) of noise."""
+    well = used[n_obs_per_target[used] >= 2]
+    rest = used[n_obs_per_target[used] < 2]
+    pool = np.concatenate([rng.permutation(well), rng.permutation(rest)])
+    cp_idx = np.sort(pool[: min(n_checkpoints, used.size)]).astype(int)
+    cp_xyz = xyz[cp_idx] + rng.normal(0.0, noise_m, (cp_idx.size, 3))
+    return {
+        "format": CHECKPOINTS_FORMAT,
+        "units": "m",
+        "targets": [
+            {"id": target_ids[i], "xyz": [float(v) for v in p]}
+            for i, p in zip(cp_idx, cp_xyz, strict=True)
+        ],
+    }
 
 
 def _add_blunders(images, options, rng, target_ids) -> list[dict[str, Any]]:
