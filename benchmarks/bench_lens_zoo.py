@@ -263,12 +263,13 @@ def _default_calibration(dataset_path: Path, out_path: Path, progress):
     Returns the calibration and the CLI's exit status (0 trusted, 1 not).
     """
     from gtsam_sphere import cli
+    from gtsam_sphere.cli.common import options_from_args
     from gtsam_sphere.estimation.calibrate import calibrate
     from gtsam_sphere.io.dataset import load_dataset
 
     args = cli.build_parser().parse_args(["calibrate", str(dataset_path), "-o", str(out_path)])
     dataset = load_dataset(args.dataset)
-    calib = calibrate(dataset, cli._options_from_args(args), progress)
+    calib = calibrate(dataset, options_from_args(args), progress)
     calib.save(args.output)
     status = 0 if calib.statistics.get("trusted", calib.statistics["converged"]) else 1
     return calib, status
