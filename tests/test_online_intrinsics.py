@@ -130,3 +130,20 @@ def test_isam2_stays_put_without_drift(tracks):
     print("          smoothed RMS/max", np.sqrt(np.mean(smoothed**2)), np.abs(smoothed).max())
     assert np.abs(filtered).max() < 0.4 and np.sqrt(np.mean(filtered**2)) < 0.15
     assert np.abs(smoothed).max() < 0.3 and np.sqrt(np.mean(smoothed**2)) < 0.1
+
+
+def test_example_writes_its_plot(tmp_path, monkeypatch, capsys):
+    """examples/online_intrinsics.py runs end to end and writes the PNG it is given."""
+    import importlib.util
+    import sys
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "examples" / "online_intrinsics.py"
+    spec = importlib.util.spec_from_file_location("online_intrinsics_example", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    out = tmp_path / "drift.png"
+    monkeypatch.setattr(sys, "argv", ["online_intrinsics.py", str(out), "--frames", "15"])
+    module.main()
+    assert out.stat().st_size > 1000
+    assert "smoothed" in capsys.readouterr().out
