@@ -129,6 +129,30 @@ def test_jacobians_match_numerical_derivatives(mapping, direction):
         assert np.allclose(A, num, atol=1e-5 * np.abs(num).max()), (A, num)
 
 
+def test_raw_pixel_noise_goes_through_the_measurement_corrections():
+    """``raw_pixels=True``: the noise is that of the raw pixels. A point on the ray of
+    ``uv0`` measured at ``uv0 + delta`` has the raw residual ``delta``; the factor's
+    whitened norm is ``|S delta|`` to first order, where the default (ideal-coordinate
+    noise) is off by the Brown terms' gradient (a strong k1 here)."""
+    camera = SphereCamera(
+        width=1000, height=1000, xp=500.3, yp=498.2, c=400.0, brown={"k1": 0.08, "p1": 2e-3}
+    )
+    camera.correction = _Field()
+    S = np.linalg.inv(np.linalg.cholesky(COV))
+    for direction in ([0.3, -0.2, 1.0], [0.9, 0.5, 0.6]):
+        for delta in ([0.4, 0.0], [0.0, -0.4], [0.3, 0.3]):
+            uv, values = _one(camera, direction, offset=delta)
+            want = np.linalg.norm(S @ np.asarray(delta))
+            raw = exact_bearing_factors(
+                camera, uv[None], pose_key(0), point_key(0), COV, raw_pixels=True
+            )[0]
+            ideal = exact_bearing_factors(camera, uv[None], pose_key(0), point_key(0), COV)[0]
+            e_raw = np.linalg.norm(raw.whitenedError(values))
+            e_ideal = np.linalg.norm(ideal.whitenedError(values))
+            assert e_raw == pytest.approx(want, rel=5e-3)
+            assert abs(e_raw - want) < 0.5 * abs(e_ideal - want)
+
+
 # ----------------------------------------------------------------------------- SLAM graph
 
 
@@ -306,26 +330,52 @@ def test_smart_factor_variant_recovers_the_poses(scene, solutions):
 # ----------------------------------------------------------------------------- rig
 
 
-class _Rig:
-    """What rig_exact_bearing_factors reads of a RigCalibration: cameras and cam_from_rig."""
+def _rig_file(tmp_path, cameras, cam_from_rig):
+    """A calibration@2 file of these cameras (no frames, images or targets), read back."""
+    from gtsam_sphere import load_calibration
+    from gtsam_sphere.io.calibration import RigCalibration
 
-    def __init__(self, cameras, cam_from_rig):
-        self.cameras = cameras
-        self.cam_from_rig = cam_from_rig
+    ids = list(cameras)
+    rig = RigCalibration(
+        camera_ids=ids,
+        cameras=cameras,
+        models=dict.fromkeys(ids, "radial"),
+        cam_from_rig=cam_from_rig,
+        frame_ids=[],
+        rig_from_world_R=np.zeros((0, 3, 3)),
+        rig_from_world_t=np.zeros((0, 3)),
+        image_ids=[],
+        image_camera=[],
+        image_frame=[],
+        cam_from_world_R=np.zeros((0, 3, 3)),
+        cam_from_world_t=np.zeros((0, 3)),
+        target_ids=[],
+        target_xyz=np.zeros((0, 3)),
+        statistics={
+            "rms_px": 0.3,
+            "n_observations": 0,
+            "n_rejected": 0,
+            "cameras": {c: {"rms_px": 0.3} for c in ids},
+        },
+    )
+    return load_calibration(rig.save(tmp_path / "rig.json"))
 
 
-def test_rig_graph_recovers_body_poses():
-    """A two-fisheye rig looking forward and backward (20 cm apart) moves through a room of
-    landmarks; world_from_body variables, fixed cam_from_rig, odometry, a prior on the
-    first body pose: the body poses come back within the noise from a perturbed start."""
+def test_rig_graph_recovers_body_poses(tmp_path):
+    """A two-fisheye rig (a calibration@2 file) looking forward and backward (20 cm apart)
+    moves through a room of landmarks; world_from_body variables, fixed cam_from_rig,
+    odometry, a prior on the first body pose: the body poses come back within the noise
+    from a perturbed start."""
     rng = np.random.default_rng(5)
     front, back = fisheye_camera(190.0), fisheye_camera(190.0)
     # camera 'back' turned by 180 degrees about y, 20 cm behind camera 'front' (the rig frame)
     R_back = np.diag([-1.0, 1.0, -1.0])
-    rig = _Rig(
+    rig = _rig_file(
+        tmp_path,
         {"front": front, "back": back},
         {"front": (np.eye(3), np.zeros(3)), "back": (R_back, R_back @ np.array([0, 0, 0.2]))},
     )
+    assert type(rig).__name__ == "RigCalibration"
     landmarks = rng.uniform([-3, -1.5, -3], [3, 1.5, 3], size=(150, 3))
     n_frames = 8
     bodies = [

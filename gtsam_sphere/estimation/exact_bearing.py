@@ -47,10 +47,14 @@ The same virtual cameras give a landmark-free variant:
 one virtual camera per observation in its ``CameraSet``; smart factors need an
 isotropic noise, which the whitened form provides).
 
-Pixel noise convention: the noise is that of the ideal (corrected) image
-coordinates, as on the pixel path (:class:`~gtsam_sphere.estimation.external.ProjectionBlocks`);
-the measurement corrections' own Jacobian (within a few percent of the identity)
-is not applied.
+Pixel noise convention: by default the noise is that of the ideal (corrected)
+image coordinates, as on the pixel path
+(:class:`~gtsam_sphere.estimation.external.ProjectionBlocks`), so that both
+paths weight alike. With ``raw_pixels=True`` it is the noise of the raw
+measured pixels, carried through the measurement corrections' Jacobian ``D = d
+ideal / d uv`` (central differences of ``camera.ideal_from_pixels``, 0.25 px
+steps): ``S_ideal = S_px D^-1``. ``D`` differs from the identity by the Brown
+terms' and the learned field's gradients (a few percent at a fisheye's rim).
 """
 
 from __future__ import annotations
@@ -135,6 +139,18 @@ def tangent_sqrt_information(
     return np.einsum("nab,nbc,ncd->nad", pixel_sqrt_info, J, bases[:, :, :2])
 
 
+def _measurement_jacobian(camera, uv: np.ndarray, step_px: float = 0.25) -> np.ndarray:
+    """``D = d ideal / d uv`` (n, 2, 2) at raw pixels, by central differences (px/px)."""
+    D = np.empty((len(uv), 2, 2))
+    for c in range(2):
+        h = np.zeros(2)
+        h[c] = step_px
+        D[:, :, c] = (camera.ideal_from_pixels(uv + h) - camera.ideal_from_pixels(uv - h)) / (
+            2 * step_px
+        )
+    return D
+
+
 def _upper_triangular(A: np.ndarray) -> np.ndarray:
     """``U`` (n, 2, 2), upper triangular with positive diagonal, with ``U^T U = A^T A``."""
     _, U = np.linalg.qr(A)
@@ -159,6 +175,9 @@ class ExactBearings:
     body_from_cam : gtsam.Pose3, or list of them (n,), or None
         Fixed pose of the camera in the body whose ``world_from_body`` is the
         variable (None: identity, the variable is ``world_from_cam``); dataset units.
+    raw_pixels : bool
+        ``pixel_noise`` is the noise of the raw pixels, carried through the
+        measurement corrections (default: of the ideal coordinates, as the pixel path).
 
     Attributes
     ----------
@@ -183,10 +202,17 @@ class ExactBearings:
         pixel_noise=1.0,
         hemisphere=1.0,
         body_from_cam=None,
+        raw_pixels: bool = False,
     ) -> None:
         uv = check_uv(uv_px)
         n = len(uv)
         S, self.mestimator = _pixel_sqrt_information(pixel_noise, n)
+        if raw_pixels:
+            D = _measurement_jacobian(camera_of(calibration_or_camera), uv)
+            ok_d = np.isfinite(D).all((1, 2)) & (np.abs(np.linalg.det(D)) > 1e-12)
+            D[~ok_d] = np.eye(2)
+            S = S @ np.linalg.inv(D)
+            S[~ok_d] = np.nan
         self.rays = bearings(calibration_or_camera, uv, hemisphere)
         ok = np.isfinite(self.rays).all(1)
         safe = np.where(ok[:, None], self.rays, [0.0, 0.0, 1.0])
@@ -316,6 +342,7 @@ def exact_bearing_factors(
     robust=None,
     hemisphere=1.0,
     body_from_cam=None,
+    raw_pixels: bool = False,
 ) -> list:
     """Exact-bearing C++ factors on ``Pose3`` + ``Point3`` for pixel observations.
 
@@ -337,12 +364,16 @@ def exact_bearing_factors(
         M-estimator on the whitened norm (threshold in sigmas).
     hemisphere : float or array_like, shape (n,)
     body_from_cam : gtsam.Pose3, list of (n,) gtsam.Pose3, or None
+    raw_pixels : bool
+        The noise is that of the raw pixels (see :class:`ExactBearings`).
 
     Returns
     -------
     list of gtsam.GenericProjectionFactorCal3_S2
     """
-    eb = ExactBearings(calibration_or_camera, uv_px, pixel_noise, hemisphere, body_from_cam)
+    eb = ExactBearings(
+        calibration_or_camera, uv_px, pixel_noise, hemisphere, body_from_cam, raw_pixels
+    )
     return eb.factors(pose_keys, point_keys, robust)
 
 
@@ -354,6 +385,7 @@ def exact_bearing_smart_factor(
     hemisphere=1.0,
     body_from_cam=None,
     params: gtsam.SmartProjectionParams | None = None,
+    raw_pixels: bool = False,
 ) -> gtsam.SmartProjectionRigFactorPinholePoseCal3_S2:
     """One landmark's track as a landmark-free smart factor on ``Pose3`` (:class:`ExactBearings`).
 
@@ -361,7 +393,9 @@ def exact_bearing_smart_factor(
     ``Pose3`` variables ``pose_keys`` (n,). A ``Robust`` pixel model's
     M-estimator is ignored (smart factors take none).
     """
-    eb = ExactBearings(calibration_or_camera, uv_px, pixel_noise, hemisphere, body_from_cam)
+    eb = ExactBearings(
+        calibration_or_camera, uv_px, pixel_noise, hemisphere, body_from_cam, raw_pixels
+    )
     return eb.smart_factor(pose_keys, params)
 
 
@@ -379,6 +413,7 @@ def rig_exact_bearing_factors(
     pixel_noise=1.0,
     robust=None,
     body_from_rig: gtsam.Pose3 | None = None,
+    raw_pixels: bool = False,
 ) -> list:
     """Exact-bearing factors of a calibrated rig on ``world_from_body`` poses.
 
@@ -404,6 +439,8 @@ def rig_exact_bearing_factors(
     robust : gtsam.noiseModel.mEstimator.Base or None
     body_from_rig : gtsam.Pose3 or None
         Pose of the rig frame in the body (e.g. an IMU); None: body = rig frame.
+    raw_pixels : bool
+        The noise is that of the raw pixels (see :class:`ExactBearings`).
 
     Returns
     -------
@@ -425,7 +462,9 @@ def rig_exact_bearing_factors(
         noise = pixel_noise[cid] if isinstance(pixel_noise, dict) else pixel_noise
         if isinstance(noise, np.ndarray) and noise.ndim == 3:
             noise = noise[idx]
-        eb = ExactBearings(rig.cameras[cid], uv[idx], noise, body_from_cam=body_from_cam)
+        eb = ExactBearings(
+            rig.cameras[cid], uv[idx], noise, body_from_cam=body_from_cam, raw_pixels=raw_pixels
+        )
         for k, f in zip(idx, eb.factors(bk[idx], lk[idx], robust)):
             out[k] = f
     return out
