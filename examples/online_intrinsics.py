@@ -12,7 +12,10 @@ calibration, iSAM2's filtered estimate (right after each frame) and the
 smoothed one (given all frames).
 
     python examples/online_intrinsics.py OUT.png [--frames 150] [--drift 3] [--seed 0]
-        [--calibration CALIB.json]
+        [--map-sigma 0.005] [--calibration CALIB.json]
+
+With ``--map-sigma S`` the map given to the tracker is off by ``S`` m (1 sigma)
+and its landmarks are estimated too (``Point3`` variables with that prior).
 
 With ``--calibration`` the lens of a ``calibration@1`` file is simulated (its
 learned correction included); otherwise the simulator's lens.
@@ -38,6 +41,7 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=150)
     ap.add_argument("--drift", type=float, default=3.0, help="drift of c over the sequence, px")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--map-sigma", type=float, default=None, help="map error, m (default exact)")
     ap.add_argument("--calibration", default=None, help="a calibration@1 file (its camera)")
     args = ap.parse_args()
     camera = load_calibration(args.calibration).camera if args.calibration else None
@@ -50,7 +54,7 @@ def main() -> None:
     fig, axes = plt.subplots(2, 1, figsize=(8, 6.5), sharex=True)
     for ax, drift in zip(axes, (args.drift, 0.0)):
         seq = simulate_drift(n_frames=args.frames, drift_px=drift, camera=camera, seed=args.seed)
-        r = track_drift(seq)
+        r = track_drift(seq, map_sigma_m=args.map_sigma, seed=args.seed)
         t = np.arange(args.frames)
         print(f"drift {drift:g} px over {args.frames} frames ({r['seconds']:.1f} s of iSAM2):")
         for name in ("frozen", "filtered", "smoothed"):

@@ -40,12 +40,23 @@ from ..core.rays import camera_of
 from .graph import NoiseOptions, ObservationBlock
 from .rig_joint import camera_with_theta, theta_of, warp_of
 
-__all__ = ["IntrinsicsTracker", "OnlineIntrinsics", "intrinsics_key"]
+__all__ = [
+    "IntrinsicsTracker",
+    "OnlineIntrinsics",
+    "camera_pose_key",
+    "intrinsics_key",
+    "landmark_key",
+]
 
 
 def intrinsics_key(t: int) -> int:
     """GTSAM key ``i{t}`` of the intrinsics at time step ``t`` (the tracker's)."""
     return gtsam.symbol("i", t)
+
+
+def landmark_key(j: int) -> int:
+    """GTSAM key ``l{j}`` of map landmark ``j`` (the tracker's, with ``map_sigma_m``)."""
+    return gtsam.symbol("l", j)
 
 
 def camera_pose_key(t: int) -> int:
@@ -101,12 +112,19 @@ class OnlineIntrinsics:
         model = gtsam.noiseModel.Gaussian.Covariance(inflate**2 * self.covariance)
         return gtsam.PriorFactorVector(int(key), self.theta0, model)
 
-    def drift_sigmas(self, per_step: dict[str, float], hold: float = 1e-6) -> np.ndarray:
-        """Random-walk sigmas (K,) per step: ``per_step[name]``, others ``hold`` (theta units)."""
+    def drift_sigmas(self, per_step: dict[str, float], hold: float = 0.01) -> np.ndarray:
+        """Random-walk sigmas (K,) per step (theta units).
+
+        ``per_step[name]`` for the named parameters; the others get ``hold`` times
+        their prior sigma (``sqrt(diag(covariance))``): held, not constrained (a far
+        tighter hold, 1e-6 absolute, made iSAM2's elimination report an
+        indeterminate system with free landmarks, measured).
+        """
         unknown = set(per_step) - set(self.names)
         if unknown:
             raise KeyError(f"unknown intrinsics {sorted(unknown)}; names are {self.names}")
-        return np.array([float(per_step.get(n, hold)) for n in self.names])
+        held = float(hold) * np.sqrt(np.diag(self.covariance))
+        return np.array([float(per_step.get(n, h)) for n, h in zip(self.names, held)])
 
     def drift_factor(self, key_from: int, key_to: int, sigmas: np.ndarray, dt: float = 1.0):
         """Random walk ``theta_to - theta_from ~ N(0, diag(sigmas^2) dt)`` (a BetweenFactorVector).
@@ -193,12 +211,15 @@ class OnlineIntrinsics:
 
 
 class IntrinsicsTracker:
-    """iSAM2 over a sequence of frames with known landmarks, intrinsics as a random walk.
+    """iSAM2 over a sequence of frames seeing a map, intrinsics as a random walk.
 
     Variables per frame ``t``: ``x{t}`` (``Pose3`` ``world_from_cam``) and ``i{t}``
     (``theta``, K). Frame 0 gets :meth:`OnlineIntrinsics.prior_factor` and a pose
     prior; later frames a random walk from ``i{t-1}`` and an odometry factor from
-    ``x{t-1}`` (or nothing when no odometry is given).
+    ``x{t-1}`` (or nothing when no odometry is given). The map's landmarks are
+    known points (``map_sigma_m=None``) or ``Point3`` variables ``l{j}`` with an
+    isotropic prior of ``map_sigma_m`` at their map coordinates, added when first
+    seen (an imprecise map, refined along the way).
 
     Parameters
     ----------
@@ -207,6 +228,8 @@ class IntrinsicsTracker:
         Random-walk sigmas per frame (:meth:`OnlineIntrinsics.drift_sigmas`).
     isam_params : gtsam.ISAM2Params or None
         Default: relinearise at 1e-3, every update.
+    map_sigma_m : float or None
+        Standard deviation of the map's coordinates (dataset units); None: exact.
 
     Attributes
     ----------
@@ -214,8 +237,12 @@ class IntrinsicsTracker:
         ``theta`` of each frame right after its update (filtered).
     """
 
-    def __init__(self, online: OnlineIntrinsics, drift_sigmas, isam_params=None) -> None:
+    def __init__(
+        self, online: OnlineIntrinsics, drift_sigmas, isam_params=None, map_sigma_m=None
+    ) -> None:
         self.online = online
+        self.map_sigma_m = map_sigma_m
+        self._landmarks: set[int] = set()
         self.sigmas = np.asarray(drift_sigmas, float)
         if isam_params is None:
             isam_params = gtsam.ISAM2Params()
@@ -235,6 +262,7 @@ class IntrinsicsTracker:
         pose_guess: gtsam.Pose3,
         pose_prior_noise=None,
         odometry: tuple[gtsam.Pose3, gtsam.noiseModel.Base] | None = None,
+        landmark_ids=None,
     ) -> np.ndarray:
         """Add frame ``t`` (observations of known points) and return its ``theta`` estimate.
 
@@ -250,6 +278,8 @@ class IntrinsicsTracker:
             Frame 0 only: prior on ``pose_guess`` (6-D, default 1 m / 1 rad: weak).
         odometry : (gtsam.Pose3, noise model) or None
             ``cam_{t-1}_from_cam_t`` and its noise (ignored for frame 0).
+        landmark_ids : array_like of int, shape (n,), or None
+            Map index of each observed point; required with ``map_sigma_m``.
         """
         t = self.t
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
@@ -265,7 +295,20 @@ class IntrinsicsTracker:
             if odometry is not None:
                 rel, noise = odometry
                 graph.add(gtsam.BetweenFactorPose3(camera_pose_key(t - 1), xk, rel, noise))
-        graph.add(self.online.observation_factor(uv_px, xk, ik, points_xyz=points_xyz))
+        keys = None
+        if self.map_sigma_m is not None:
+            if landmark_ids is None:
+                raise ValueError("a tracker with map_sigma_m needs landmark_ids")
+            ids = np.asarray(landmark_ids, np.int64)
+            xyz = np.asarray(points_xyz, float)
+            keys = np.array([landmark_key(int(j)) for j in ids], np.int64)
+            prior = gtsam.noiseModel.Isotropic.Sigma(3, float(self.map_sigma_m))
+            for k, p in zip(keys.tolist(), xyz):
+                if k not in self._landmarks:
+                    self._landmarks.add(k)
+                    values.insert(k, p)
+                    graph.add(gtsam.PriorFactorPoint3(k, p, prior))
+        graph.add(self.online.observation_factor(uv_px, xk, ik, keys, points_xyz))
         self.isam.update(graph, values)
         theta = np.asarray(self.isam.calculateEstimate([ik]).atVector(ik), float)
         self._last_theta = theta

@@ -130,6 +130,8 @@ def track_drift(
     c_drift_sigma_px: float = 0.05,
     prior_sigma_px: float = 0.2,
     other_sigma: float = 1e-3,
+    map_sigma_m: float | None = None,
+    seed: int = 0,
 ) -> dict:
     """Track the sequence's intrinsics with iSAM2; returns the estimates of ``c`` (px).
 
@@ -140,6 +142,10 @@ def track_drift(
     prior_sigma_px : float
         Prior sigma of the calibration's ``xp, yp, c`` (px); ``other_sigma`` for
         the other intrinsics (their units).
+    map_sigma_m : float or None
+        None: the map is exact (known points). Else the tracker is given a map whose
+        coordinates are off by Gaussian noise of this sigma (m, seeded by ``seed``),
+        and estimates the landmarks with that prior.
 
     Returns
     -------
@@ -155,8 +161,12 @@ def track_drift(
     online = OnlineIntrinsics(
         seq.camera, covariance=np.diag(prior**2), noise=NoiseOptions(sigma_px=seq.noise_px)
     )
-    sigmas = online.drift_sigmas({"c_px": c_drift_sigma_px}, hold=1e-6)
-    tracker = IntrinsicsTracker(online, sigmas)
+    sigmas = online.drift_sigmas({"c_px": c_drift_sigma_px}, hold=0.01)
+    tracker = IntrinsicsTracker(online, sigmas, map_sigma_m=map_sigma_m)
+    points = seq.points_world
+    if map_sigma_m is not None:
+        rng = np.random.default_rng(seed)
+        points = points + rng.normal(scale=map_sigma_m, size=points.shape)
     t0 = time.perf_counter()
     guess = seq.world_from_cam[0]
     for t, (uv, idx) in enumerate(seq.frames):
@@ -164,7 +174,7 @@ def track_drift(
         if t > 0:
             odo = (seq.odometry[t - 1], seq.odometry_noise)
             guess = tracker.pose(t - 1).compose(seq.odometry[t - 1])
-        tracker.add_frame(uv, seq.points_world[idx], guess, odometry=odo)
+        tracker.add_frame(uv, points[idx], guess, odometry=odo, landmark_ids=idx)
     seconds = time.perf_counter() - t0
     c = online.names.index("c_px")
     return {
