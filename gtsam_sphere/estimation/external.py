@@ -55,6 +55,11 @@ of every observation (``+1`` front, ``-1`` back, e.g. from the sign of ``z``
 of a predicted camera-frame point); the angular sigma grows without bound at
 90 degrees there. The "radial" mapping is one-to-one up to
 ``camera.max_alpha_rad()`` and needs no hemisphere.
+
+**Exact bearings on Pose3**: :mod:`~gtsam_sphere.estimation.exact_bearing`
+carries the full 2x2 pixel metric into C++ factors on ``Pose3`` + ``Point3``
+(one virtual pinhole camera per measured ray), with a rig and a smart-factor
+variant; prefer it to the isotropic ``BearingFactor3D``.
 """
 
 from __future__ import annotations
