@@ -613,21 +613,22 @@ def _rational_feasible(params, rays) -> bool:
     return bool(np.all(1 + grid * (k4 + grid * (k5 + grid * k6)) > 0))
 
 
-def _omni_initial(rays, uv, pp) -> np.ndarray:
-    """Grid over ``xi`` (no distortion): focal lengths solved linearly, the most valid rays
-    then the lowest cost wins."""
+def _grid_initial(rays, uv, pp, shapes, params_of, valid_of, project_of, what) -> np.ndarray:
+    """A start for a model with shape parameters: over the grid ``shapes`` (no distortion),
+    focal lengths solved linearly; the most valid rays, then the lowest cost, win.
+    ``params_of(shape, fx, fy)`` builds the parameter vector."""
     best = None
     sub = np.unique(np.linspace(0, len(rays) - 1, min(len(rays), 2000)).astype(int))
     rs = rays[sub]
     du = uv[sub, 0] - pp[0]
     dv = uv[sub, 1] - pp[1]
-    for xi in np.linspace(0.0, 3.0, 31):
-        p = np.array([xi, 1.0, 1.0, pp[0], pp[1], 0.0, 0.0, 0.0, 0.0])
-        n_valid = int(omni_valid(p, rays).sum())
-        valid = omni_valid(p, rs)
+    for shape in shapes:
+        p = params_of(shape, 1.0, 1.0)
+        n_valid = int(valid_of(p, rays).sum())
+        valid = valid_of(p, rs)
         if valid.sum() < 10:
             continue
-        m = omni_project(p, rs[valid]) - pp
+        m = project_of(p, rs[valid]) - pp
         fx = float(m[:, 0] @ du[valid] / max(m[:, 0] @ m[:, 0], 1e-300))
         fy = float(m[:, 1] @ dv[valid] / max(m[:, 1] @ m[:, 1], 1e-300))
         if not (fx > 0 and fy > 0):
@@ -635,39 +636,29 @@ def _omni_initial(rays, uv, pp) -> np.ndarray:
         res = np.column_stack([fx * m[:, 0] - du[valid], fy * m[:, 1] - dv[valid]])
         key = (-n_valid, float(np.sum(res**2)))
         if best is None or key < best[0]:
-            best = (key, np.array([xi, fx, fy, pp[0], pp[1], 0.0, 0.0, 0.0, 0.0]))
+            best = (key, params_of(shape, fx, fy))
     if best is None:
-        raise ValueError("no unified-model start projects the observed region")
+        raise ValueError(f"no {what} start projects the observed region")
     return best[1]
+
+
+def _omni_initial(rays, uv, pp) -> np.ndarray:
+    """Grid over ``xi`` (:func:`_grid_initial`)."""
+    return _grid_initial(
+        rays, uv, pp, np.linspace(0.0, 3.0, 31),
+        lambda xi, fx, fy: np.array([xi, fx, fy, pp[0], pp[1], 0.0, 0.0, 0.0, 0.0]),
+        omni_valid, omni_project, "unified-model",
+    )  # fmt: skip
 
 
 def _ds_initial(rays, uv, pp) -> np.ndarray:
-    """Grid over ``(xi, alpha)``: focal lengths solved linearly, the most valid rays then lowest
-    cost wins."""
-    best = None
-    sub = np.unique(np.linspace(0, len(rays) - 1, min(len(rays), 2000)).astype(int))
-    rs = rays[sub]
-    du = uv[sub, 0] - pp[0]
-    dv = uv[sub, 1] - pp[1]
-    for xi in np.linspace(-0.6, 1.6, 23):
-        for alpha in np.linspace(0.0, 0.95, 20):
-            p = np.array([xi, alpha, 1.0, 1.0, pp[0], pp[1]])
-            n_valid = int(ds_valid(p, rays).sum())
-            valid = ds_valid(p, rs)
-            if valid.sum() < 10:
-                continue
-            m = ds_project(p, rs[valid]) - pp
-            fx = float(m[:, 0] @ du[valid] / max(m[:, 0] @ m[:, 0], 1e-300))
-            fy = float(m[:, 1] @ dv[valid] / max(m[:, 1] @ m[:, 1], 1e-300))
-            if not (fx > 0 and fy > 0):
-                continue
-            res = np.column_stack([fx * m[:, 0] - du[valid], fy * m[:, 1] - dv[valid]])
-            key = (-n_valid, float(np.sum(res**2)))
-            if best is None or key < best[0]:
-                best = (key, np.array([xi, alpha, fx, fy, pp[0], pp[1]]))
-    if best is None:
-        raise ValueError("no double-sphere start projects the observed region")
-    return best[1]
+    """Grid over ``(xi, alpha)`` (:func:`_grid_initial`)."""
+    shapes = [(xi, a) for xi in np.linspace(-0.6, 1.6, 23) for a in np.linspace(0.0, 0.95, 20)]
+    return _grid_initial(
+        rays, uv, pp, shapes,
+        lambda s, fx, fy: np.array([s[0], s[1], fx, fy, pp[0], pp[1]]),
+        ds_valid, ds_project, "double-sphere",
+    )  # fmt: skip
 
 
 # --------------------------------------------------------------------------- the result
