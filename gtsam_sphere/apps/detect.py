@@ -44,6 +44,18 @@ the board seen with a pose rotated by 180 degrees about its normal), but it brea
 any method that assumes one board pose shared by several images (e.g. a static
 board seen by a moving rig). Use a ChArUco board or an asymmetric chessboard then.
 
+A board larger than described
+-----------------------------
+``cv2.findChessboardCornersSB`` asked for a 4x6 grid on a board with 6x8 inner corners
+returns a 4x6 sub-grid, at an arbitrary offset and, under strong fisheye distortion,
+often jumping over whole rows or columns: every corner mislabelled. After detection the
+grid is therefore checked (:func:`_grid_continuation`): chessboard saddles one square
+beyond a border (predicted by local homographies), saddles between neighbouring grid
+corners, or grid cells holding more than one square mean the pattern continues, and
+detection stops with :class:`~gtsam_sphere.core.errors.TargetMismatchError` (exit code
+2) naming the image and what was seen. On the fish_1 / fish_2 images of the shared data
+every one of the 31 images described as 4x6 is refused and none described as 6x8 is.
+
 Periphery recovery (``gtsam-sphere detect ... --recover`` or ``--recover-with CALIB``)
 ----------------------------------------------------------------------------------------
 The detector misses what a fisheye shows worst: ChArUco corners whose markers are too
@@ -77,7 +89,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..core.errors import DatasetError, InputError, OptionsError
+from ..core.errors import DatasetError, InputError, OptionsError, TargetMismatchError
 from ..core.least_squares import Damping, levenberg_marquardt
 from ..core.robust import Loss, mad_sigma, robust_weight
 
@@ -405,7 +417,9 @@ def _orient_chessboard(gray: np.ndarray, grid: np.ndarray) -> np.ndarray:
     return min(candidates, key=lambda g: float(g[0, 0].sum()))
 
 
-def _detect_chessboard(gray: np.ndarray, board: BoardSpec, attempts: int) -> dict[str, np.ndarray]:
+def _detect_chessboard(
+    gray: np.ndarray, board: BoardSpec, attempts: int, check_size: bool = True
+) -> dict[str, np.ndarray]:
     size = (board.cols, board.rows)
     corners = None
     flags_sb = cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY
@@ -431,6 +445,15 @@ def _detect_chessboard(gray: np.ndarray, board: BoardSpec, attempts: int) -> dic
     if corners is None or len(corners) != board.cols * board.rows:
         return {}
     corners, good = _refine_grid_corners(gray, corners.reshape(board.rows, board.cols, 2))
+    if check_size:
+        beyond = _grid_continuation(gray, corners)
+        if beyond:
+            raise TargetMismatchError(
+                f"the chessboard pattern continues beyond the described {board.cols}x"
+                f"{board.rows} grid ({'; '.join(beyond)}): the board is larger than "
+                f"{board.text!r} says; give its full size (inner corners, COLSxROWS), "
+                "otherwise the corners would be labelled wrongly"
+            )
     # orient with every corner (the grid must be complete), then leave out the failed ones
     order = np.arange(board.rows * board.cols, dtype=float).reshape(board.rows, board.cols)
     both = np.concatenate([corners, order[..., None]], axis=2)
@@ -490,6 +513,153 @@ def _refine_grid_corners(gray: np.ndarray, grid: np.ndarray) -> tuple[np.ndarray
             if ok_i[0] and score[0] >= 0.5:
                 refined[i], ok[i] = q[0], True
     return refined.reshape(rows, cols, 2), ok.reshape(rows, cols)
+
+
+def _grid_continuation(gray: np.ndarray, grid: np.ndarray) -> list[str]:
+    """Where a detected chessboard grid is part of a larger pattern.
+
+    A grid of the described size found on a larger board is a sub-grid: either the
+    pattern continues beyond one of its borders, or (under strong distortion, seen on
+    real fisheye images) the detector skipped whole rows or columns, so that a board
+    corner lies between two "neighbouring" grid corners. Both are tested with the
+    saddle test: candidates are (1) the points one square beyond each border,
+    predicted by a homography fitted to the nearest block of up to 3x3 grid corners
+    (exact under perspective, close under local lens distortion) and (2) the
+    midpoints between neighbouring grid corners. Each candidate is searched with
+    ``cv2.cornerSubPix`` (half window 0.25 local spacing) from it and from four starts
+    0.2 spacing around it, each polished by the saddle fit; it counts as a board
+    corner when one of them succeeds, stays within 0.4 local spacing of the
+    candidate and 0.35 spacing away from every grid corner, and
+    :func:`saddle_score` (ring radius 0.25 spacing) is at least 0.5 with 8 grey levels
+    of contrast. On a printed board the points beyond a border lie on the board's
+    outer edge (a square's corner against the white margin, score about 0) and the
+    midpoints on square edges (score about 0). (3) The grid's cells must each be one
+    square: the ring around a cell's centre (radius 0.2 of its shortest side) must be
+    uniform; a ring contrast over 0.35 times the grid corners' median marks a cell that
+    holds edges or corners of several squares (the detector jumped over squares).
+
+    Parameters
+    ----------
+    gray : ndarray, shape (H, W), uint8
+        Grey image.
+    grid : ndarray, shape (rows, cols, 2)
+        Detected corners ``(u, v)`` in pixels, in grid order.
+
+    Returns
+    -------
+    list of str
+        One description per group of candidates (a border, or the gap between two grid
+        rows / columns) where at least 2 candidates and at least half of those inside
+        the image are board corners, e.g. ``"beyond the last row (5 of 6 points)"``,
+        and a line when at least 2 and a quarter of the cells hold several squares.
+        Empty when the grid looks complete.
+    """
+    rows, cols = grid.shape[:2]
+    h, w = gray.shape[:2]
+
+    def beyond(r_out: int | None, c_out: int | None) -> np.ndarray:
+        """Predicted corners of the grid line one square beyond a border.
+
+        ``r_out`` (-1 or rows) for a row beyond the first/last row, else ``c_out``.
+        Each point from a homography fitted to the nearest block of up to 3x3 grid
+        corners next to it: exact under perspective, close under local distortion.
+        """
+        n = cols if r_out is not None else rows
+        out = np.empty((n, 2))
+        for k in range(n):
+            lo_k = int(np.clip(k - 1, 0, max(n - 3, 0)))
+            ks = np.arange(lo_k, min(lo_k + 3, n))
+            if r_out is not None:
+                rs = np.arange(0, min(3, rows)) if r_out < 0 else np.arange(max(rows - 3, 0), rows)
+                rr, cc = np.meshgrid(rs, ks, indexing="ij")
+                target = (k, r_out)
+            else:
+                cs = np.arange(0, min(3, cols)) if c_out < 0 else np.arange(max(cols - 3, 0), cols)
+                rr, cc = np.meshgrid(ks, cs, indexing="ij")
+                target = (c_out, k)
+            src = np.stack([cc.ravel(), rr.ravel()], axis=1).astype(np.float64)
+            dst = grid[rr.ravel(), cc.ravel()]
+            hom, _ = cv2.findHomography(src, dst, 0)
+            if hom is None:
+                out[k] = np.nan
+                continue
+            q = hom @ np.array([target[0], target[1], 1.0])
+            out[k] = q[:2] / q[2] if abs(q[2]) > 1e-12 else np.nan
+        return out
+
+    groups: list[tuple[str, np.ndarray, np.ndarray]] = []
+    sp_col = np.linalg.norm(np.diff(grid, axis=0), axis=2)  # (rows-1, cols): along a column
+    sp_row = np.linalg.norm(np.diff(grid, axis=1), axis=2)  # (rows, cols-1): along a row
+    groups.append(("beyond the first row", beyond(-1, None), sp_col[0]))
+    groups.append(("beyond the last row", beyond(rows, None), sp_col[-1]))
+    groups.append(("beyond the first column", beyond(None, -1), sp_row[:, 0]))
+    groups.append(("beyond the last column", beyond(None, cols), sp_row[:, -1]))
+    for i in range(rows - 1):
+        groups.append(
+            (f"between grid rows {i} and {i + 1}", 0.5 * (grid[i] + grid[i + 1]), sp_col[i])
+        )
+    for j in range(cols - 1):
+        groups.append(
+            (
+                f"between grid columns {j} and {j + 1}",
+                0.5 * (grid[:, j] + grid[:, j + 1]),
+                sp_row[:, j],
+            )
+        )
+    corners = grid.reshape(-1, 2)
+    found = []
+    for name, cand, spacing in groups:
+        spacing = np.asarray(spacing, dtype=np.float64)
+        margin = np.maximum(0.3 * spacing, 4.0)
+        inside = (
+            np.all(np.isfinite(cand), axis=1)
+            & (spacing >= 8.0)
+            & (cand[:, 0] >= margin)
+            & (cand[:, 0] <= w - 1 - margin)
+            & (cand[:, 1] >= margin)
+            & (cand[:, 1] <= h - 1 - margin)
+        )
+        n_in = int(np.count_nonzero(inside))
+        if n_in < 2:
+            continue
+        hits = 0
+        for p, s in zip(cand[inside], spacing[inside]):
+            # several starts around the prediction (the distortion bends the lines)
+            offs = np.array([[0, 0], [1, 0], [-1, 0], [0, 1], [0, -1]], float) * 0.2 * s
+            starts = _subpix(gray, p[None] + offs, int(np.clip(0.25 * s, 2, 15)))
+            q, ok = _saddle_refine(gray, starts, return_mask=True, max_move=0.4 * s)
+            near = (
+                ok
+                & (np.linalg.norm(q - p, axis=1) <= 0.4 * s)
+                & (np.min(np.linalg.norm(q[:, None] - corners[None], axis=2), axis=1) >= 0.35 * s)
+            )
+            if not np.any(near):
+                continue
+            score, contrast = saddle_score(gray, q[near], radius=max(2.0, 0.25 * s))
+            if np.any((score >= 0.5) & (contrast >= 8.0)):
+                hits += 1
+        if hits >= 2 and 2 * hits >= n_in:
+            found.append(f"{name} ({hits} of {n_in} points)")
+    if rows >= 2 and cols >= 2:
+        # (3) every cell one square: uniform around its centre (ring contrast well below
+        # the grid corners')
+        _, corner_contrast = saddle_score(gray, corners, radius=3.0)
+        ref = float(np.median(corner_contrast))
+        cells = 0.25 * (grid[:-1, :-1] + grid[1:, :-1] + grid[:-1, 1:] + grid[1:, 1:])
+        side = np.minimum(
+            np.minimum(sp_row[:-1], sp_row[1:]), np.minimum(sp_col[:, :-1], sp_col[:, 1:])
+        )
+        ok = (side >= 8.0).ravel()
+        if np.count_nonzero(ok) >= 2 and ref >= 8.0:
+            centres = cells.reshape(-1, 2)[ok]
+            radius = np.maximum(0.2 * side.ravel()[ok], 2.0)
+            contrast = np.array(
+                [saddle_score(gray, c[None], radius=r)[1][0] for c, r in zip(centres, radius)]
+            )
+            busy = int(np.count_nonzero(contrast > 0.35 * ref))
+            if busy >= 2 and 4 * busy >= len(centres):
+                found.append(f"{busy} of {len(centres)} grid cells hold more than one square")
+    return found
 
 
 def _aruco_parameters():
@@ -956,7 +1126,9 @@ def _fit_aruco_marker(
     return corners, centre
 
 
-def detect_image(gray: np.ndarray, board: BoardSpec, *, attempts: int = 3) -> dict[str, np.ndarray]:
+def detect_image(
+    gray: np.ndarray, board: BoardSpec, *, attempts: int = 3, check_size: bool = True
+) -> dict[str, np.ndarray]:
     """Detect the targets of ``board`` in one image.
 
     Parameters
@@ -970,6 +1142,10 @@ def detect_image(gray: np.ndarray, board: BoardSpec, *, attempts: int = 3) -> di
         with and without ``CALIB_CB_NORMALIZE_IMAGE``) before falling back to
         ``cv2.findChessboardCorners``. The detector is seeded (``cv2.setRNGSeed``), so
         results are reproducible; this resets OpenCV's global RNG.
+    check_size : bool, optional
+        Chessboards: test that the detected grid is the whole pattern
+        (:func:`_grid_continuation`: no board corner one square beyond a border or
+        between two neighbouring grid corners) and raise otherwise.
 
     Returns
     -------
@@ -978,10 +1154,16 @@ def detect_image(gray: np.ndarray, board: BoardSpec, *, attempts: int = 3) -> di
         top-left pixel). Empty when nothing is found. Chessboards are all-or-nothing
         (every inner corner or none); ChArUco boards may be partial; ArUco markers give
         ``"M{id}"`` (centre) and ``"M{id}_{k}"`` (corners).
+
+    Raises
+    ------
+    TargetMismatchError
+        When the image shows a larger board than ``board`` describes (see
+        ``check_size``); the message says where the pattern continues.
     """
     g = _to_gray(gray)
     if board.kind == "chessboard":
-        return _detect_chessboard(g, board, attempts)
+        return _detect_chessboard(g, board, attempts, check_size)
     if board.kind == "charuco":
         return _detect_charuco(g, board)
     if board.kind == "aruco":
@@ -1260,6 +1442,9 @@ def detect_images(
     ------
     ValueError
         If ``board`` is ``"aruco"`` without ``markers_csv``, or no image is usable.
+    TargetMismatchError
+        If an image shows a larger target than ``board`` describes; the message names
+        the image.
     """
     report = DetectionReport()
     survey = None
@@ -1291,7 +1476,10 @@ def detect_images(
         elif hw != size:
             report.skipped.append((path, f"size {hw[0]}x{hw[1]} differs from {size[0]}x{size[1]}"))
             continue
-        found = detect_image(img, board)
+        try:
+            found = detect_image(img, board)
+        except TargetMismatchError as exc:
+            raise TargetMismatchError(f"image {path}: {exc}") from None
         obs = []
         for key in sorted(found):
             uv = found[key]
