@@ -101,6 +101,7 @@ __all__ = [
     "detect_image",
     "detect_images",
     "predict_and_refine",
+    "read_kalibr_target",
     "read_markers_csv",
     "recover_dataset",
     "refine_predicted_corners",
@@ -163,9 +164,18 @@ class BoardSpec:
     marker_m : float
         Side of an ArUco marker in metres (ChArUco, ArUco); 0 for chessboards.
     dictionary : str
-        ArUco dictionary name, e.g. ``"DICT_4X4_50"`` (ChArUco, ArUco); ``""`` otherwise.
+        ArUco dictionary name, e.g. ``"DICT_4X4_50"`` (ChArUco, ArUco,
+        ``"DICT_APRILTAG_36H11"`` for AprilGrids); ``""`` otherwise.
     text : str
         The specification string the board was parsed from.
+    spacing : float
+        AprilGrid: gap between neighbouring tags as a fraction of the tag side
+        (Kalibr's ``tagSpacing``); 0 otherwise.
+
+    AprilGrids (``kind == "aprilgrid"``, Kalibr's target) use ``cols`` / ``rows`` for
+    the tags along x / y (``tagCols``, ``tagRows``), ``marker_m`` for the tag side
+    (``tagSize``, edge to edge of the black border) and ``square_m`` for the tag pitch
+    ``tagSize * (1 + tagSpacing)``.
     """
 
     kind: str
@@ -175,6 +185,7 @@ class BoardSpec:
     marker_m: float = 0.0
     dictionary: str = ""
     text: str = ""
+    spacing: float = 0.0
     _charuco: object = field(default=None, repr=False, compare=False)
 
     @classmethod
@@ -227,6 +238,14 @@ class BoardSpec:
                 )
             _parse_dictionary(parts[4])
             return cls("charuco", sx, sy, square, marker, parts[4].upper(), text=str(text))
+        if kind == "aprilgrid":
+            if len(parts) != 4:
+                raise OptionsError(
+                    f"bad board {text!r}: expected 'aprilgrid:COLSxROWS:TAG_M:SPACING' "
+                    "(tags, tag side in metres, gap / tag side as Kalibr's tagSpacing)"
+                )
+            cols, rows = _parse_dims(parts[1], "AprilGrid size")
+            return cls.aprilgrid(cols, rows, _parse_length(parts[2], "tag size"), parts[3], text)
         if kind == "aruco":
             if len(parts) != 3:
                 raise OptionsError(f"bad board {text!r}: expected 'aruco:DICT:MARKER_M'")
@@ -234,8 +253,76 @@ class BoardSpec:
             marker = _parse_length(parts[2], "marker size")
             return cls("aruco", marker_m=marker, dictionary=parts[1].upper(), text=str(text))
         raise OptionsError(
-            f"bad board kind {parts[0]!r} in {text!r}: expected 'chessboard', 'charuco' or 'aruco'"
+            f"bad board kind {parts[0]!r} in {text!r}: expected 'chessboard', 'charuco', "
+            "'aprilgrid' or 'aruco'"
         )
+
+    @classmethod
+    def aprilgrid(
+        cls, cols: int, rows: int, tag_m: float, spacing: float | str, text: str = ""
+    ) -> BoardSpec:
+        """Kalibr's AprilGrid: ``cols x rows`` tag36h11 tags of side ``tag_m`` metres.
+
+        Parameters
+        ----------
+        cols, rows : int
+            Tags along the board's x / y axes (Kalibr ``tagCols``, ``tagRows``).
+        tag_m : float
+            Tag side in metres, edge to edge of the black border (``tagSize``).
+        spacing : float or str
+            Gap between tags over the tag side (``tagSpacing``, e.g. 0.3), in (0, 1].
+        text : str
+            Specification text to keep (default: ``"aprilgrid:COLSxROWS:TAG_M:SPACING"``).
+        """
+        try:
+            ratio = float(spacing)
+        except ValueError:
+            raise OptionsError(
+                f"bad tag spacing {spacing!r}: expected the gap over the tag side, e.g. 0.3"
+            ) from None
+        if not (np.isfinite(ratio) and 0.0 < ratio <= 1.0):
+            raise OptionsError(
+                f"bad tag spacing {spacing!r}: the gap over the tag side must be in (0, 1]"
+            )
+        if int(cols) < 1 or int(rows) < 1 or int(cols) * int(rows) > 587:
+            raise OptionsError(
+                f"bad AprilGrid size {cols}x{rows}: need 1 to 587 tags (tag36h11 has 587 ids)"
+            )
+        if not (np.isfinite(tag_m) and tag_m > 0):
+            raise OptionsError(f"bad tag size {tag_m!r}: must be a positive length in metres")
+        return cls(
+            "aprilgrid",
+            int(cols),
+            int(rows),
+            float(tag_m) * (1.0 + ratio),
+            float(tag_m),
+            "DICT_APRILTAG_36H11",
+            text=text or f"aprilgrid:{int(cols)}x{int(rows)}:{float(tag_m):g}:{ratio:g}",
+            spacing=ratio,
+        )
+
+    def aprilgrid_corner_ids(self, tag_id: int) -> list[str]:
+        """Target ids of an AprilGrid tag's corners, in OpenCV's corner order.
+
+        Kalibr numbers the corners of a ``tagCols x tagRows`` grid row by row on a
+        ``2 tagRows x 2 tagCols`` lattice, from the board's origin at the lower left
+        corner of tag 0 (x to the right, y up on the printed target); tag ``t`` sits in
+        tag row ``t // tagCols``, column ``t % tagCols``, and its lower left, lower
+        right, upper right, upper left corners are points ``b, b + 1, b + 2 tagCols + 1,
+        b + 2 tagCols`` with ``b = (t // tagCols) 4 tagCols + (t % tagCols) 2`` (see
+        ``GridCalibrationTargetAprilgrid.cpp`` in ethz-asl/kalibr, whose comments draw
+        this ordering). OpenCV returns a marker's corners clockwise from its upper left
+        one as printed (upper left, upper right, lower right, lower left), i.e. points
+        ``b + 2 tagCols, b + 2 tagCols + 1, b + 1, b``.
+
+        Returns
+        -------
+        list of 4 str
+            ``"C{point:03d}"`` for OpenCV's corners 0, 1, 2, 3.
+        """
+        n = 2 * self.cols
+        base = (tag_id // self.cols) * 2 * n + (tag_id % self.cols) * 2
+        return [f"C{k:03d}" for k in (base + n, base + n + 1, base + 1, base)]
 
     # -- helpers -------------------------------------------------------------------
 
@@ -260,7 +347,8 @@ class BoardSpec:
         -------
         dict of str to ndarray, shape (3,)
             Target id -> ``(x, y, 0)`` in metres, board frame (``x`` along a row of
-            corners, ``y`` down the rows, board plane ``z = 0``). Empty for ``"aruco"``
+            corners, ``y`` down the rows, board plane ``z = 0``; AprilGrids: Kalibr's
+            frame and point numbering, see :meth:`aprilgrid_corner_ids`). Empty for ``"aruco"``
             (markers spread over a scene have no board frame; use a markers CSV).
         """
         if self.kind == "chessboard":
@@ -269,6 +357,14 @@ class BoardSpec:
                 for c in range(self.cols):
                     xyz = np.array([c * self.square_m, r * self.square_m, 0.0])
                     out[f"C{r * self.cols + c:03d}"] = xyz
+            return out
+        if self.kind == "aprilgrid":
+            out = {}
+            for r in range(2 * self.rows):
+                for c in range(2 * self.cols):
+                    x = (c // 2) * self.square_m + (c % 2) * self.marker_m
+                    y = (r // 2) * self.square_m + (r % 2) * self.marker_m
+                    out[f"C{r * 2 * self.cols + c:03d}"] = np.array([x, y, 0.0])
             return out
         if self.kind == "charuco":
             pts = np.asarray(self.charuco_board().getChessboardCorners(), dtype=float)
@@ -283,7 +379,117 @@ class BoardSpec:
             return self.cols * self.rows
         if self.kind == "charuco":
             return (self.cols - 1) * (self.rows - 1)
+        if self.kind == "aprilgrid":
+            return 4 * self.cols * self.rows
         return 0
+
+
+# --------------------------------------------------------------------------------------
+# Kalibr target files
+# --------------------------------------------------------------------------------------
+
+
+def _flat_yaml(path: str) -> dict[str, str]:
+    """The ``key: value`` lines of a flat YAML mapping (Kalibr's target files).
+
+    Comments (``#`` to the end of the line) and blank lines are skipped; values keep
+    their text with surrounding quotes removed. Nested mappings and lists are refused.
+    """
+    out: dict[str, str] = {}
+    with open(path, encoding="utf-8") as fh:
+        for lineno, raw in enumerate(fh, start=1):
+            line = raw.split("#", 1)[0].rstrip()
+            if not line.strip() or line.strip() in ("---", "..."):
+                continue
+            if line[0].isspace() or ":" not in line or line.lstrip().startswith("-"):
+                raise DatasetError(
+                    f"{path}:{lineno}: expected a flat 'key: value' line as in Kalibr's "
+                    f"target files, got {raw.strip()!r}"
+                )
+            key, value = (x.strip() for x in line.split(":", 1))
+            if len(value) >= 2 and value[0] == value[-1] and value[0] in "'\"":
+                value = value[1:-1]
+            if key in out:
+                raise DatasetError(f"{path}:{lineno}: key {key!r} given twice")
+            out[key] = value
+    return out
+
+
+def read_kalibr_target(path: str) -> BoardSpec:
+    """Read a Kalibr target description (``target.yaml``).
+
+    Supported (Kalibr wiki, "Calibration targets"):
+
+    ``target_type: aprilgrid``
+        ``tagCols``, ``tagRows`` (tags), ``tagSize`` (tag side in metres, edge to edge
+        of the black border), ``tagSpacing`` (gap between tags over ``tagSize``).
+        Tags of the tag36h11 family with Kalibr's 2-cell black border; target ids and
+        board coordinates as Kalibr numbers them (:meth:`BoardSpec.aprilgrid_corner_ids`:
+        ``"C{k:03d}"`` for Kalibr's grid point ``k``; board frame x right, y up the
+        printed target, origin at the lower left corner of tag 0, metres).
+    ``target_type: checkerboard``
+        ``targetCols``, ``targetRows`` (inner corners along x / y), ``rowSpacingMeters``,
+        ``colSpacingMeters`` (square sides, which must be equal here): the chessboard
+        ``chessboard:COLSxROWS:SQUARE`` (ids ``C{r * COLS + c:03d}``, as Kalibr's
+        ``r * cols + c``).
+
+    Parameters
+    ----------
+    path : str
+        The YAML file.
+
+    Returns
+    -------
+    BoardSpec
+
+    Raises
+    ------
+    DatasetError
+        When the file is not a flat mapping, a key is missing or a value is malformed;
+        the message names the file and the key.
+    OptionsError
+        For target types this package does not detect (``circlegrid``) and rectangular
+        checkerboard squares.
+    """
+    keys = _flat_yaml(path)
+
+    def get(name: str, kind: type):
+        if name not in keys:
+            raise DatasetError(f"{path}: Kalibr target file without {name!r}")
+        try:
+            value = kind(keys[name])
+        except ValueError:
+            what = "an integer" if kind is int else "a number"
+            raise DatasetError(f"{path}: {name}: {keys[name]!r} is not {what}") from None
+        if not (np.isfinite(value) and value > 0):
+            raise DatasetError(f"{path}: {name}: {keys[name]!r} must be positive")
+        return value
+
+    kind = keys.get("target_type", "").strip().lower()
+    if kind == "aprilgrid":
+        return BoardSpec.aprilgrid(
+            get("tagCols", int),
+            get("tagRows", int),
+            get("tagSize", float),
+            get("tagSpacing", float),
+            text=f"{path} (aprilgrid {keys['tagCols']}x{keys['tagRows']}, tagSize "
+            f"{keys['tagSize']} m, tagSpacing {keys['tagSpacing']})",
+        )
+    if kind == "checkerboard":
+        cols, rows = get("targetCols", int), get("targetRows", int)
+        dx, dy = get("colSpacingMeters", float), get("rowSpacingMeters", float)
+        if abs(dx - dy) > 1e-9 * max(dx, dy):
+            raise OptionsError(
+                f"{path}: colSpacingMeters {dx} and rowSpacingMeters {dy} differ: only square "
+                "chessboard squares are supported"
+            )
+        return BoardSpec.parse(f"chessboard:{cols}x{rows}:{dx!r}")
+    if "target_type" not in keys:
+        raise DatasetError(f"{path}: Kalibr target file without 'target_type'")
+    raise OptionsError(
+        f"{path}: target_type {keys['target_type']!r} is not supported: expected "
+        "'aprilgrid' or 'checkerboard'"
+    )
 
 
 # --------------------------------------------------------------------------------------
@@ -692,6 +898,114 @@ def _detect_charuco(gray: np.ndarray, board: BoardSpec) -> dict[str, np.ndarray]
         ok[~ok] = ok2
         refined, ids = refined[ok], ids[ok]
     return {f"C{i:03d}": refined[k] for k, i in enumerate(ids)}
+
+
+def _detect_aprilgrid(gray: np.ndarray, board: BoardSpec) -> dict[str, np.ndarray]:
+    """Kalibr AprilGrid: tag36h11 tags by ``cv2.aruco``, corners polished as saddles.
+
+    The tags are found and decoded by ``cv2.aruco.ArucoDetector`` with the
+    ``DICT_APRILTAG_36h11`` dictionary and a 2-cell black border (Kalibr prints its tags
+    with ``blackTagBorder = 2``); each tag gives its 4 corners under Kalibr's point ids
+    (:meth:`BoardSpec.aprilgrid_corner_ids`). On an AprilGrid every tag corner touches
+    one of the small black squares in the gaps, so it is an X-corner: it is polished by
+    the saddle fit (:func:`_saddle_refine`, a few pixels around the corner, unbiased by
+    curved fisheye edges), retried from a small-window ``cv2.cornerSubPix`` estimate,
+    and dropped if it still is not a saddle (as for ChArUco corners).
+
+    Raises
+    ------
+    TargetMismatchError
+        When the tags contradict the layout: two or more tags with ids the grid does not
+        have (a larger grid), the same id twice (tags that are not the target's), or
+        most neighbouring tags not where the layout puts them (:func:`_aprilgrid_layout_check`).
+    """
+    params = _aruco_parameters()
+    params.markerBorderBits = 2
+    params.perspectiveRemovePixelPerCell = 8
+    detector = cv2.aruco.ArucoDetector(board.aruco_dictionary(), params)
+    corners, ids, _ = detector.detectMarkers(gray)
+    if ids is None or len(ids) == 0:
+        return {}
+    n_tags = board.cols * board.rows
+    ids = np.asarray(ids).ravel().astype(int)
+    quads = [np.asarray(q, dtype=np.float64).reshape(4, 2) for q in corners]
+    foreign = sorted(int(i) for i in ids if i >= n_tags)
+    if len(foreign) >= 2:
+        raise TargetMismatchError(
+            f"AprilGrid tags with ids {foreign} seen, but the described {board.cols}x"
+            f"{board.rows} grid has ids 0..{n_tags - 1}: the grid is larger than "
+            f"{board.text!r} says (or other tag36h11 tags are in view); give its full size"
+        )
+    keep = [k for k, i in enumerate(ids) if i < n_tags]
+    ids = ids[keep]
+    quads = [quads[k] for k in keep]
+    uniq, counts = np.unique(ids, return_counts=True)
+    if np.any(counts > 1):
+        raise TargetMismatchError(
+            f"AprilGrid tag ids {uniq[counts > 1].tolist()} seen twice: tags that are not "
+            "part of the target are in view (hide them), or two targets are"
+        )
+    drop = _aprilgrid_layout_check(board, ids, quads)
+    keep = [k for k, i in enumerate(ids) if int(i) not in drop]
+    ids, quads = ids[keep], [quads[k] for k in keep]
+    if not len(ids):
+        return {}
+    keys = [k for i in ids for k in board.aprilgrid_corner_ids(int(i))]
+    pts = np.concatenate(quads, axis=0)
+    refined, ok = _saddle_refine(gray, pts, return_mask=True)
+    if not np.all(ok):
+        retry, ok2 = _saddle_refine(gray, _subpix(gray, pts[~ok], 2), return_mask=True)
+        refined[~ok] = retry
+        ok[~ok] = ok2
+    return {k: refined[j] for j, k in enumerate(keys) if ok[j]}
+
+
+def _aprilgrid_layout_check(board: BoardSpec, ids: np.ndarray, quads: list[np.ndarray]) -> set[int]:
+    """Tags whose corners contradict their neighbours; raise when most tags do.
+
+    For every pair of detected tags that are neighbours in the layout (same tag row,
+    next column; or next row), the homography from the board coordinates of one tag's
+    corners to their image positions predicts the other tag's corners; a pair is
+    inconsistent when the prediction misses by more than 0.3 of the tag's image side
+    (under perspective it is exact, and the lens distortion over one tag pitch stays
+    well below that). With at least 2 pairs and more than half inconsistent the layout
+    (tag columns, rows or spacing) does not describe the board: raise. Otherwise a tag
+    whose every checked pair is inconsistent has a corner off (seen on rendered fisheye
+    views: a quadrilateral corner on the neighbouring small square, 20 px away) and is
+    returned for dropping.
+
+    Returns
+    -------
+    set of int
+        Ids of the tags to leave out.
+    """
+    points = board.object_points_m()
+    where = {int(i): q for i, q in zip(ids, quads)}
+    bad = total = 0
+    pairs: dict[int, list[bool]] = {}
+    for i, q in where.items():
+        src = np.array([points[k][:2] for k in board.aprilgrid_corner_ids(i)])
+        hom, _ = cv2.findHomography(src, q, 0)
+        if hom is None:
+            continue
+        side = float(np.mean(np.linalg.norm(q - np.roll(q, 1, axis=0), axis=1)))
+        for j in (i + 1, i + board.cols):
+            if j not in where or (j == i + 1 and j % board.cols == 0):
+                continue
+            other = np.array([points[k][:2] for k in board.aprilgrid_corner_ids(j)])
+            pred = cv2.perspectiveTransform(other[None], hom)[0]
+            total += 1
+            off = bool(np.max(np.linalg.norm(pred - where[j], axis=1)) > 0.3 * side)
+            bad += off
+            pairs.setdefault(i, []).append(off)
+            pairs.setdefault(j, []).append(off)
+    if total >= 2 and 2 * bad > total:
+        raise TargetMismatchError(
+            f"AprilGrid tags are not where the {board.cols}x{board.rows} layout of "
+            f"{board.text!r} puts them ({bad} of {total} neighbouring tag pairs off by more "
+            "than 0.3 tag): check tagCols, tagRows and tagSpacing"
+        )
+    return {i for i, offs in pairs.items() if all(offs)}
 
 
 def _detect_aruco(gray: np.ndarray, board: BoardSpec) -> dict[str, np.ndarray]:
@@ -1166,6 +1480,8 @@ def detect_image(
         return _detect_chessboard(g, board, attempts, check_size)
     if board.kind == "charuco":
         return _detect_charuco(g, board)
+    if board.kind == "aprilgrid":
+        return _detect_aprilgrid(g, board)
     if board.kind == "aruco":
         return _detect_aruco(g, board)
     raise ValueError(f"unknown board kind {board.kind!r}")
@@ -2041,12 +2357,18 @@ def add_cli_arguments(parser: argparse.ArgumentParser) -> None:
         default="auto",
         help="--sync timestamp: unit of the numbers in the names (default: from their digits)",
     )
-    parser.add_argument(
+    target = parser.add_mutually_exclusive_group(required=True)
+    target.add_argument(
         "--board",
-        required=True,
         metavar="SPEC",
         help="target: 'chessboard:COLSxROWS:SQUARE_M' (inner corners), "
-        "'charuco:SXxSY:SQUARE_M:MARKER_M:DICT' or 'aruco:DICT:MARKER_M'",
+        "'charuco:SXxSY:SQUARE_M:MARKER_M:DICT', 'aprilgrid:COLSxROWS:TAG_M:SPACING' "
+        "(Kalibr's) or 'aruco:DICT:MARKER_M'",
+    )
+    target.add_argument(
+        "--target",
+        metavar="TARGET.yaml",
+        help="Kalibr target file (target_type aprilgrid or checkerboard) instead of --board",
     )
     parser.add_argument(
         "--markers-csv",
@@ -2091,6 +2413,15 @@ def add_cli_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def board_from_args(args: argparse.Namespace) -> BoardSpec:
+    """The target of ``--board SPEC`` or ``--target TARGET.yaml`` (Kalibr)."""
+    if getattr(args, "target", None):
+        return read_kalibr_target(args.target)
+    if not getattr(args, "board", None):
+        raise OptionsError("no target: give --board SPEC or --target TARGET.yaml")
+    return BoardSpec.parse(args.board)
+
+
 def run_cli(args: argparse.Namespace) -> int:
     """Run the ``detect`` sub-command; return the process exit code (0 = success)."""
     if getattr(args, "camera", None):  # a rig: detect_rig.run_cli (the command line routes it)
@@ -2098,7 +2429,7 @@ def run_cli(args: argparse.Namespace) -> int:
     if not args.images:
         raise OptionsError("no images: give IMAGES (one camera) or --camera ID=DIR_OR_GLOB (rig)")
     try:
-        board = BoardSpec.parse(args.board)
+        board = board_from_args(args)
         dataset, report = detect_images(
             list(args.images),
             board,

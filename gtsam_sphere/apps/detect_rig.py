@@ -376,7 +376,7 @@ def detect_rig(
 def run_cli(args: argparse.Namespace) -> int:
     """Run ``gtsam-sphere detect --camera ID=DIR ...``: a rig, written as dataset@2."""
     from ..io.calibration import load_calibration
-    from .detect import BoardSpec, write_json_atomic
+    from .detect import board_from_args, write_json_atomic
 
     if args.images:
         raise OptionsError(
@@ -385,7 +385,7 @@ def run_cli(args: argparse.Namespace) -> int:
         )
     from ..core.camera import Model
 
-    board = BoardSpec.parse(args.board)
+    board = board_from_args(args)
     recover_with = None
     if getattr(args, "recover_with", None):
         from ..io.calibration import load_calibration
