@@ -142,8 +142,21 @@ def test_rendered_aprilgrid_through_a_200_degree_fisheye(view):
         f"aprilgrid {view}: {len(det)}/{len(truth)} corners, RMS {rms:.4f} px, "
         f"max {err.max():.3f} px, incidence up to {inc.max():.1f} deg"
     )
-    assert len(det) >= 0.25 * len(truth)
-    assert rms < 0.08 and err.max() < 0.25
+    # the decoder finds the central tags; the layout-guided growth finds the rest
+    assert len(det) >= (len(truth) if view == "front" else 0.55 * len(truth))
+    assert rms < 0.08 and err.max() < 0.25  # right ids: every corner where its id says
+
+
+def test_growth_adds_only_verified_tags():
+    from gtsam_sphere.apps.detect import _detect_aprilgrid
+
+    img, truth = _render("oblique")
+    seeds = _detect_aprilgrid(img, GRID, grow=False)
+    grown = _detect_aprilgrid(img, GRID)
+    print(f"oblique view: {len(seeds)} corners decoded, {len(grown)} with the growth")
+    assert len(grown) > 1.5 * len(seeds)
+    # every added tag's corners are where its id puts them (its code was checked)
+    assert all(np.linalg.norm(grown[k] - truth[k]) < 0.25 for k in grown)
 
 
 def test_aprilgrid_described_smaller_is_refused():

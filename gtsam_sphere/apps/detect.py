@@ -900,7 +900,9 @@ def _detect_charuco(gray: np.ndarray, board: BoardSpec) -> dict[str, np.ndarray]
     return {f"C{i:03d}": refined[k] for k, i in enumerate(ids)}
 
 
-def _detect_aprilgrid(gray: np.ndarray, board: BoardSpec) -> dict[str, np.ndarray]:
+def _detect_aprilgrid(
+    gray: np.ndarray, board: BoardSpec, grow: bool = True
+) -> dict[str, np.ndarray]:
     """Kalibr AprilGrid: tag36h11 tags by ``cv2.aruco``, corners polished as saddles.
 
     The tags are found and decoded by ``cv2.aruco.ArucoDetector`` with the
@@ -910,7 +912,11 @@ def _detect_aprilgrid(gray: np.ndarray, board: BoardSpec) -> dict[str, np.ndarra
     one of the small black squares in the gaps, so it is an X-corner: it is polished by
     the saddle fit (:func:`_saddle_refine`, a few pixels around the corner, unbiased by
     curved fisheye edges), retried from a small-window ``cv2.cornerSubPix`` estimate,
-    and dropped if it still is not a saddle (as for ChArUco corners).
+    and dropped if it still is not a saddle (as for ChArUco corners) or scores below
+    0.75 on a 3 px ring (:func:`saddle_score`: a small square so narrow that the fit
+    also sees its other corners). With ``grow`` the
+    tags the decoder missed are then predicted from the layout and kept when their
+    code is seen (:func:`_grow_aprilgrid`).
 
     Raises
     ------
@@ -957,7 +963,158 @@ def _detect_aprilgrid(gray: np.ndarray, board: BoardSpec) -> dict[str, np.ndarra
         retry, ok2 = _saddle_refine(gray, _subpix(gray, pts[~ok], 2), return_mask=True)
         refined[~ok] = retry
         ok[~ok] = ok2
-    return {k: refined[j] for j, k in enumerate(keys) if ok[j]}
+    out = {k: refined[j] for j, k in enumerate(keys) if ok[j]}
+    whole = {
+        int(i): refined[4 * n : 4 * n + 4]
+        for n, i in enumerate(ids)
+        if np.all(ok[4 * n : 4 * n + 4])
+    }
+    if grow:
+        for i, q in _grow_aprilgrid(gray, board, whole).items():
+            out.update(zip(board.aprilgrid_corner_ids(i), q))
+            whole[i] = q
+    # on strongly foreshortened tags the small squares are 2-3 px wide and the saddle
+    # fit also sees their other corners (0.2-0.5 px bias): such corners are no clean
+    # saddle on a 3 px ring (score below 0.75; clean ones score 0.9 and more)
+    if out:
+        keys = list(out)
+        score, _ = saddle_score(gray, np.array([out[k] for k in keys]), radius=3.0)
+        out = {k: out[k] for k, sc in zip(keys, score) if sc >= 0.75}
+    return out
+
+
+def _grow_aprilgrid(
+    gray: np.ndarray, board: BoardSpec, tags: dict[int, np.ndarray], rounds: int = 12
+) -> dict[int, np.ndarray]:
+    """Tags the decoder missed, predicted from the layout and verified by their code.
+
+    Under a fisheye the decoder misses most tags away from the centre (bent borders,
+    cells of 2-4 px). The layout says where they are. For a missing tag next to a found
+    one (same row or column of tags), its two corners facing the found tag (one small
+    square away) are predicted by the homography of the found tag's corners; its two
+    far corners by a quadratic along each lattice line through the found tag's two
+    corners and the refined near corner (the bend of the lens to second order: a
+    homography from one tag misses them by 6-15 px on the rendered 200 degree views,
+    more than the distance to the next saddle). Each prediction is polished by
+    ``cv2.cornerSubPix`` (half window 0.2 gap) and the saddle fit and must stay within
+    0.35 gap of it (the next saddle, across the small square, is one gap away). The tag
+    is kept only if its 10 x 10 cells, sampled through the homography of its refined
+    corners, show the expected code: correlation with the tag's pattern at least 0.8
+    and at most 2 of its 100 cells on the wrong side of the mid grey. Repeated while
+    tags are added (``rounds`` at most).
+
+    Parameters
+    ----------
+    gray : ndarray, shape (H, W), uint8
+    board : BoardSpec
+        AprilGrid.
+    tags : dict of int to ndarray, shape (4, 2)
+        Found tags: id -> refined corners in OpenCV's order (pixels).
+
+    Returns
+    -------
+    dict of int to ndarray, shape (4, 2)
+        The added tags, same form.
+    """
+    points = board.object_points_m()
+    dictionary = board.aruco_dictionary()
+    h, w = gray.shape
+    n2 = 2 * board.cols  # lattice columns
+    found = dict(tags)
+    added: dict[int, np.ndarray] = {}
+    cells = 10
+    centres = (np.arange(cells) + 0.5) / cells
+    cu, cv_ = np.meshgrid(centres, centres)
+    unit = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]], np.float32)
+
+    def lattice(key: str) -> tuple[int, int]:
+        return divmod(int(key[1:]), n2)
+
+    def polish(pred: np.ndarray, gap: float) -> np.ndarray | None:
+        if np.any(~np.isfinite(pred)) or np.any((pred < 3) | (pred > np.array([w - 4, h - 4]))):
+            return None
+        q = _subpix(gray, pred, int(np.clip(0.2 * gap, 2, 11)))
+        q, ok = _saddle_refine(gray, q, return_mask=True)
+        if not np.all(ok) or np.max(np.linalg.norm(q - pred, axis=1)) > 0.35 * gap:
+            return None
+        return q
+
+    def attempt(m: int, n: int) -> np.ndarray | None:
+        ids_m, ids_n = board.aprilgrid_corner_ids(m), board.aprilgrid_corner_ids(n)
+        where_n = dict(zip(ids_n, found[n]))
+        hom, _ = cv2.findHomography(np.array([points[k][:2] for k in ids_n]), found[n], 0)
+        if hom is None:
+            return None
+        horizontal = m // board.cols == n // board.cols
+        # near corners: on the lattice line next to n
+        lm = [lattice(k) for k in ids_m]
+        axis = 1 if horizontal else 0
+        n_lines = {lattice(k)[axis] for k in ids_n}
+        near_line = min({p[axis] for p in lm}, key=lambda x: min(abs(x - y) for y in n_lines))
+        near = [i for i, p in enumerate(lm) if p[axis] == near_line]
+        far = [i for i in range(4) if i not in near]
+        xy_m = np.array([points[k][:2] for k in ids_m])
+        pred = cv2.perspectiveTransform(xy_m[None], hom)[0]
+        side = float(np.mean(np.linalg.norm(pred - np.roll(pred, 1, axis=0), axis=1)))
+        gap = board.spacing * side
+        if gap < 3.0:
+            return None
+        q_near = polish(pred[near], gap)
+        if q_near is None:
+            return None
+        out = np.empty((4, 2))
+        out[near] = q_near
+        for i in far:
+            # the lattice line through corner i: n's two corners on it, m's near corner
+            other = 1 - axis
+            line = lm[i][other]
+            on_n = [k for k in ids_n if lattice(k)[other] == line]
+            on_m = [near[j] for j in range(2) if lm[near[j]][other] == line]
+            if len(on_n) != 2 or len(on_m) != 1:
+                return None
+            s = np.array([points[k][0 if horizontal else 1] for k in on_n])
+            s = np.append(s, xy_m[on_m[0]][0 if horizontal else 1])
+            uv = np.array([where_n[k] for k in on_n] + [out[on_m[0]]])
+            coef = np.polyfit(s, uv, 2)
+            s_far = xy_m[i][0 if horizontal else 1]
+            out[i] = coef[0] * s_far**2 + coef[1] * s_far + coef[2]
+        q_far = polish(out[far], gap)
+        if q_far is None:
+            return None
+        out[far] = q_far
+        # the code, sampled through the refined corners' homography
+        h_tag = cv2.getPerspectiveTransform(unit, out.astype(np.float32))
+        uv = cv2.perspectiveTransform(
+            np.stack([cu.ravel(), cv_.ravel()], axis=1)[None].astype(np.float64), h_tag
+        )[0]
+        vals = _sample(gray, uv)
+        bits = cv2.aruco.generateImageMarker(dictionary, m, cells, borderBits=2)
+        expect = (np.asarray(bits).ravel() > 127).astype(np.float64)
+        if vals.std() == 0:
+            return None
+        corr = float(np.corrcoef(vals, expect)[0, 1])
+        mid = 0.5 * (vals[expect > 0].mean() + vals[expect == 0].mean())
+        wrong = int(np.count_nonzero((vals > mid) != (expect > 0)))
+        return out if corr >= 0.8 and wrong <= 2 else None
+
+    for _ in range(rounds):
+        new = {}
+        for m in range(board.cols * board.rows):
+            if m in found:
+                continue
+            r, c = divmod(m, board.cols)
+            for rr, cc in ((r, c - 1), (r, c + 1), (r - 1, c), (r + 1, c)):
+                n = rr * board.cols + cc
+                if 0 <= rr < board.rows and 0 <= cc < board.cols and n in found:
+                    q = attempt(m, n)
+                    if q is not None:
+                        new[m] = q
+                        break
+        if not new:
+            break
+        found.update(new)
+        added.update(new)
+    return added
 
 
 def _aprilgrid_layout_check(board: BoardSpec, ids: np.ndarray, quads: list[np.ndarray]) -> set[int]:
