@@ -122,10 +122,31 @@ def test_aprilgrid_numbering_is_kalibrs():
     np.testing.assert_allclose(pts["C012"], [0, 0.088, 0])
     np.testing.assert_allclose(pts["C024"], [0, 0.088 * 1.3, 0])
     np.testing.assert_allclose(pts["C143"], [5 * 0.1144 + 0.088, 5 * 0.1144 + 0.088, 0])
-    # OpenCV corner order (upper left, upper right, lower right, lower left as printed)
-    assert GRID.aprilgrid_corner_ids(0) == ["C012", "C013", "C001", "C000"]
-    assert GRID.aprilgrid_corner_ids(7) == ["C038", "C039", "C027", "C026"]
+    # OpenCV's corners 0..3 (of its upright marker, which Kalibr prints turned by 180
+    # degrees): lower right, lower left, upper left, upper right of the printed tag
+    assert GRID.aprilgrid_corner_ids(0) == ["C001", "C000", "C012", "C013"]
+    assert GRID.aprilgrid_corner_ids(7) == ["C027", "C026", "C038", "C039"]
     assert BoardSpec.parse("aprilgrid:6x6:0.088:0.3") == GRID
+
+
+def test_rendered_tags_read_as_kalibr_prints_them():
+    # Kalibr's printed tag, read row by row from the upper left data cell as printed
+    # (white = 1, most significant bit first), is the tag36h11 code: tag 0 is 0xd5d628584
+    # and tag 1 0xd97f18b49 in the AprilTag code tables (Kaess's, which Kalibr uses)
+    from gtsam_sphere.simulate.render import _board_texture
+
+    tex, origin, texel = _board_texture(GRID, 100)
+    page = np.flipud(tex)  # texture rows go up the page
+    tag_px = int(round(GRID.marker_m / texel))
+    cell = tag_px // 10
+    pitch = int(round(GRID.square_m / texel))
+    for tag_id, code in ((0, 0xD5D628584), (1, 0xD97F18B49)):
+        x0 = int(round(-origin[0] / texel)) + tag_id * pitch
+        y1 = page.shape[0] - int(round(-origin[1] / texel))  # bottom of tag row 0, as printed
+        block = page[y1 - tag_px : y1, x0 : x0 + tag_px]
+        bits = block[2 * cell + cell // 2 : 8 * cell : cell, 2 * cell + cell // 2 : 8 * cell : cell]
+        value = int("".join("1" if b > 127 else "0" for b in bits.ravel()), 2)
+        assert value == code, (tag_id, hex(value))
 
 
 @pytest.mark.parametrize("view", ["front", "oblique", "side"])

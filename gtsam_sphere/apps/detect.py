@@ -306,14 +306,18 @@ class BoardSpec:
 
         Kalibr numbers the corners of a ``tagCols x tagRows`` grid row by row on a
         ``2 tagRows x 2 tagCols`` lattice, from the board's origin at the lower left
-        corner of tag 0 (x to the right, y up on the printed target); tag ``t`` sits in
+        corner of tag 0 (x to the right, y up the printed target); tag ``t`` sits in
         tag row ``t // tagCols``, column ``t % tagCols``, and its lower left, lower
         right, upper right, upper left corners are points ``b, b + 1, b + 2 tagCols + 1,
-        b + 2 tagCols`` with ``b = (t // tagCols) 4 tagCols + (t % tagCols) 2`` (see
-        ``GridCalibrationTargetAprilgrid.cpp`` in ethz-asl/kalibr, whose comments draw
-        this ordering). OpenCV returns a marker's corners clockwise from its upper left
-        one as printed (upper left, upper right, lower right, lower left), i.e. points
-        ``b + 2 tagCols, b + 2 tagCols + 1, b + 1, b``.
+        b + 2 tagCols`` with ``b = (t // tagCols) 4 tagCols + (t % tagCols) 2`` (the
+        comments of ``GridCalibrationTargetAprilgrid.cpp`` in ethz-asl/kalibr draw this
+        ordering). Kalibr prints each tag's code matrix rotated by 180 degrees
+        (``createTargetPDF.py``: ``rotation=2``): read row by row from its upper left
+        cell as printed, white = 1, most significant bit first, a tag shows its tag36h11
+        code, whereas OpenCV's marker image shows it rotated by 180 degrees. OpenCV's
+        corners (clockwise from the upper left one of its upright marker) therefore
+        lie at the printed tag's lower right, lower left, upper left and upper right
+        corners: points ``b + 1, b, b + 2 tagCols, b + 2 tagCols + 1``.
 
         Returns
         -------
@@ -322,7 +326,7 @@ class BoardSpec:
         """
         n = 2 * self.cols
         base = (tag_id // self.cols) * 2 * n + (tag_id % self.cols) * 2
-        return [f"C{k:03d}" for k in (base + n, base + n + 1, base + 1, base)]
+        return [f"C{k:03d}" for k in (base + 1, base, base + n, base + n + 1)]
 
     # -- helpers -------------------------------------------------------------------
 

@@ -723,7 +723,8 @@ def _aprilgrid_texture(board: BoardSpec, px_per_tag: int) -> tuple[np.ndarray, n
     """Texture of Kalibr's AprilGrid (see :func:`_board_texture`), rows along board ``+y``.
 
     Tags of 10 x 10 cells (the 6 x 6 tag36h11 code inside a 2-cell black border, as
-    Kalibr prints them), tag 0 at the board origin, tag ``t`` in tag row ``t // cols``
+    Kalibr prints them: OpenCV's marker image turned by 180 degrees), tag 0 at the
+    board origin, tag ``t`` in tag row ``t // cols``
     (board ``y`` up the printed target), column ``t % cols``; a black square of the gap's
     side at every tag corner (inner and outer), one tag pitch of white margin around.
     ``px_per_tag`` is rounded up to a multiple of 10 that makes the gap a whole number of
@@ -752,7 +753,9 @@ def _aprilgrid_texture(board: BoardSpec, px_per_tag: int) -> tuple[np.ndarray, n
         y0 = margin + (t // board.cols) * pitch
         x0 = margin + (t % board.cols) * pitch
         img = cv2.aruco.generateImageMarker(dictionary, t, tag, borderBits=2)
-        tex[y0 : y0 + tag, x0 : x0 + tag] = np.flipud(img)  # texture rows go up the page
+        # Kalibr prints OpenCV's marker image rotated by 180 degrees (BoardSpec.
+        # aprilgrid_corner_ids); texture rows go up the page: flipud(rot180) = fliplr
+        tex[y0 : y0 + tag, x0 : x0 + tag] = np.fliplr(img)
     for i in range(board.rows + 1):
         for j in range(board.cols + 1):
             y0, x0 = margin + i * pitch - gap, margin + j * pitch - gap
