@@ -209,3 +209,60 @@ def test_cli_detect_with_kalibr_target(tmp_path, capsys):
     with pytest.raises(SystemExit):  # --board and --target exclude each other
         parser.parse_args([str(paths[0]), "--target", str(target), "--board", "x", "-o", "o"])
     capsys.readouterr()
+
+
+CALIBRATION_VIEWS = {
+    **VIEWS,
+    "left": _pose(-0.2, -1.0, -0.2, [-0.3, 0.05, 0.2]),
+    "up": _pose(0.9, 0.1, 0.5, [0.0, -0.25, 0.25]),
+    "down": _pose(-0.8, 0.2, -0.4, [0.05, 0.25, 0.25]),
+    "far": _pose(0.2, -0.3, 1.2, [0.0, 0.0, 0.5]),
+}
+
+
+@pytest.mark.slow  # end-to-end: 7 renders, detection, calibration
+def test_aprilgrid_renders_to_calibration_recover_the_lens(tmp_path):
+    from gtsam_sphere.estimation.calibrate import CalibrationOptions, calibrate
+    from gtsam_sphere.io.dataset import load_dataset
+
+    paths = []
+    for name, (R, t) in CALIBRATION_VIEWS.items():
+        img, _ = render_board_image(
+            GRID,
+            LENS.project,
+            LENS.unproject,
+            R,
+            t,
+            W,
+            H,
+            px_per_square=100,
+            supersample=3,
+            blur_sigma_px=0.8,
+            noise_sigma=2.0,
+            seed=len(paths),
+        )
+        paths.append(str(tmp_path / f"{name}.png"))
+        cv2.imwrite(paths[-1], img)
+    target = tmp_path / "target.yaml"
+    target.write_text(APRILGRID_YAML)
+    parser = argparse.ArgumentParser()
+    add_cli_arguments(parser)
+    out = tmp_path / "ds.json"
+    args = parser.parse_args([*paths, "--target", str(target), "-o", str(out), "--no-progress"])
+    assert run_cli(args) == 0
+    # the lens is equidistant: the radial mapping with no terms is exact
+    options = CalibrationOptions(model="radial", radial_terms=0, brown_terms=(), covariance=True)
+    calib = calibrate(load_dataset(out), options)
+    cam, sig = calib.camera, calib.statistics["intrinsics_sigma"]
+    print(
+        f"{calib.statistics['n_observations']} corners, RMS {calib.statistics['rms_px']:.4f} px; "
+        f"xp {cam.xp - LENS.cx:+.4f} ({sig['xp_px']:.4f}), yp {cam.yp - LENS.cy:+.4f} "
+        f"({sig['yp_px']:.4f}), c {cam.c - LENS.f:+.4f} ({sig['c_px']:.4f}) px"
+    )
+    for est, true, s in (
+        (cam.xp, LENS.cx, sig["xp_px"]),
+        (cam.yp, LENS.cy, sig["yp_px"]),
+        (cam.c, LENS.f, sig["c_px"]),
+    ):
+        assert abs(est - true) < 3 * s, (est, true, s)
+    assert calib.statistics["rms_px"] < 0.1
