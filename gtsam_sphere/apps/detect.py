@@ -10,6 +10,13 @@ Supported targets
 ``charuco:SXxSY:SQUARE:MARKER:DICT``
     An OpenCV ChArUco board of ``SX x SY`` squares. Target ids are ``"C{id:03d}"`` with
     OpenCV's ChArUco corner ids and OpenCV's board coordinates.
+``aprilgrid:COLSxROWS:TAG:SPACING`` (or ``--target target.yaml``, Kalibr's file)
+    Kalibr's AprilGrid: ``COLS x ROWS`` tag36h11 tags of side ``TAG`` metres with a
+    2-cell black border, gaps of ``SPACING`` times the tag side and a small black
+    square at every tag corner. Target ids ``"C{k:03d}"`` are Kalibr's grid points
+    (:meth:`BoardSpec.aprilgrid_corner_ids`), board frame as Kalibr's (x right, y up
+    the print, origin at the lower left corner of tag 0). :func:`read_kalibr_target`
+    also reads Kalibr's ``checkerboard`` files.
 ``aruco:DICT:MARKER``
     Individual ArUco markers of side ``MARKER`` metres spread over a scene. Each marker
     gives the target ``"M{id}"`` (the image of its centre) and ``"M{id}_{k}"`` (its
