@@ -83,3 +83,17 @@ def test_real_fish_1_described_as_4x6_is_refused():
         det = detect_image(gray, full)
         assert len(det) == 48, p.name
         assert np.all(np.isfinite(np.array(list(det.values()))))
+
+
+def test_rendered_charuco_described_smaller_is_refused():
+    from test_detect import POSES
+
+    board = BoardSpec.parse("charuco:5x7:0.04:0.03:DICT_4X4_50")
+    R, t = POSES["mild"]
+    img, truth = render_board_image(
+        board, FISHEYE.project, FISHEYE.unproject, R, t, W, H, blur_sigma_px=0.7
+    )
+    with pytest.raises(TargetMismatchError, match="ChArUco markers with ids"):
+        detect_image(img, BoardSpec.parse("charuco:4x5:0.04:0.03:DICT_4X4_50"))
+    det = detect_image(img, board)
+    assert set(det) <= set(truth) and len(det) >= 0.7 * len(truth)

@@ -893,7 +893,16 @@ def _detect_charuco(gray: np.ndarray, board: BoardSpec) -> dict[str, np.ndarray]
     cparams = cv2.aruco.CharucoParameters()
     cparams.minMarkers = 1
     detector = cv2.aruco.CharucoDetector(cb, cparams, _aruco_parameters())
-    ch_corners, ch_ids, _, _ = detector.detectBoard(gray)
+    ch_corners, ch_ids, _, marker_ids = detector.detectBoard(gray)
+    if marker_ids is not None:
+        known = set(np.asarray(cb.getIds()).ravel().tolist())
+        foreign = sorted({int(i) for i in np.asarray(marker_ids).ravel()} - known)
+        if len(foreign) >= 2:
+            raise TargetMismatchError(
+                f"ChArUco markers with ids {foreign} seen, but the described board "
+                f"{board.text!r} has ids {min(known)}..{max(known)}: the board is larger "
+                "(or another board is in view); give its full size in squares"
+            )
     if ch_ids is None or ch_corners is None or len(ch_ids) == 0:
         return {}
     pts = np.asarray(ch_corners, dtype=np.float64).reshape(-1, 2)
