@@ -266,3 +266,30 @@ def test_aprilgrid_renders_to_calibration_recover_the_lens(tmp_path):
     ):
         assert abs(est - true) < 3 * s, (est, true, s)
     assert calib.statistics["rms_px"] < 0.1
+
+
+def test_cli_rig_detect_with_kalibr_target(tmp_path, capsys):
+    from gtsam_sphere.cli import main
+
+    front, _ = _render("front")
+    side, _ = _render("side")
+    for cam, images in (("cam0", (front, side)), ("cam1", (side, front))):
+        (tmp_path / cam).mkdir()
+        for stem, img in zip(("000", "001"), images):
+            cv2.imwrite(str(tmp_path / cam / f"{stem}.png"), img)
+    target = tmp_path / "target.yaml"
+    target.write_text(APRILGRID_YAML)
+    out = tmp_path / "rig.json"
+    argv = ["detect", "--target", str(target), "-o", str(out), "--no-progress"]
+    cams = ["--camera", f"cam0={tmp_path / 'cam0'}", "--camera", f"cam1={tmp_path / 'cam1'}"]
+    assert main([*argv, *cams]) == 0
+    doc = json.loads(out.read_text())
+    assert doc["format"] == "gtsam-sphere/dataset@2"
+    n = {im["id"]: len(im["observations"]) for im in doc["images"]}
+    assert n["cam0/000"] == n["cam1/001"] == 144  # the front view: every corner
+    wrong = tmp_path / "small.yaml"
+    wrong.write_text(
+        APRILGRID_YAML.replace("tagCols: 6", "tagCols: 5").replace("tagRows: 6", "tagRows: 5")
+    )
+    assert main(["detect", "--target", str(wrong), "-o", str(out), "--no-progress", *cams]) == 2
+    assert "larger" in capsys.readouterr().err
