@@ -293,3 +293,16 @@ def test_cli_rig_detect_with_kalibr_target(tmp_path, capsys):
     )
     assert main(["detect", "--target", str(wrong), "-o", str(out), "--no-progress", *cams]) == 2
     assert "larger" in capsys.readouterr().err
+
+
+def test_detect_bag_without_rosbags_says_what_to_install(tmp_path, monkeypatch, capsys):
+    import sys
+
+    from gtsam_sphere.cli import main
+
+    monkeypatch.setitem(sys.modules, "rosbags.highlevel", None)  # as if absent
+    target = tmp_path / "target.yaml"
+    target.write_text(APRILGRID_YAML)
+    argv = ["detect", "--bag", str(tmp_path / "x.bag"), "--topics", "/cam0/image_raw"]
+    assert main([*argv, "--target", str(target), "-o", str(tmp_path / "o.json")]) == 2
+    assert "gtsam-sphere[ros]" in capsys.readouterr().err

@@ -2534,6 +2534,35 @@ def add_cli_arguments(parser: argparse.ArgumentParser) -> None:
         default="auto",
         help="--sync timestamp: unit of the numbers in the names (default: from their digits)",
     )
+    bag = parser.add_argument_group(
+        "ROS bags",
+        "images from a ROS1 .bag or ROS2 bag (needs the rosbags package: gtsam-sphere[ros]); "
+        "one topic: dataset@1, several: a rig (dataset@2) paired by header stamp",
+    )
+    bag.add_argument(
+        "--bag", metavar="FILE", default=None, help="ROS1 .bag file or ROS2 bag folder"
+    )
+    bag.add_argument(
+        "--topics",
+        nargs="+",
+        metavar="TOPIC",
+        default=None,
+        help="image topics (Image or CompressedImage)",
+    )
+    bag.add_argument(
+        "--bag-freq",
+        type=float,
+        default=None,
+        metavar="HZ",
+        help="keep at most one image per topic every 1/HZ seconds (as Kalibr's --bag-freq)",
+    )
+    bag.add_argument(
+        "--approx-sync",
+        type=float,
+        default=0.02,
+        metavar="S",
+        help="several topics: largest stamp difference (s) in a frame (default 0.02, as Kalibr)",
+    )
     target = parser.add_mutually_exclusive_group(required=True)
     target.add_argument(
         "--board",
