@@ -136,3 +136,81 @@ def test_detect_bag_one_topic_and_errors(tmp_path, views, capsys):
     assert "/cam9/image_raw" in capsys.readouterr().err
     assert main([*base]) == 2  # no --topics
     assert "--topics" in capsys.readouterr().err
+
+
+@pytest.mark.slow  # end-to-end: 7 renders into a bag, detect --bag, calibrate, export
+@pytest.mark.parametrize("kind", ["ros1", "ros2"])
+def test_bag_to_calibration_to_kalibr_recovers_the_lens(tmp_path, kind, capsys):
+    """Issue 15: an AprilGrid (Kalibr's 6x6, 88 mm, spacing 0.3) through a 200 degree
+    fisheye, in a bag -> detect --bag -> calibrate -> export --to kalibr-equi."""
+    yaml = pytest.importorskip("yaml")
+    from test_kalibr_target import CALIBRATION_VIEWS, GRID, LENS, H, W
+
+    from gtsam_sphere.estimation.calibrate import CalibrationOptions, calibrate
+    from gtsam_sphere.io.dataset import load_dataset
+    from gtsam_sphere.simulate.render import render_board_image
+
+    views = []
+    for k, (R, t) in enumerate(CALIBRATION_VIEWS.values()):
+        img, _ = render_board_image(
+            GRID,
+            LENS.project,
+            LENS.unproject,
+            R,
+            t,
+            W,
+            H,
+            px_per_square=100,
+            supersample=3,
+            blur_sigma_px=0.8,
+            noise_sigma=2.0,
+            seed=k,
+        )
+        views.append(img)
+    bag = tmp_path / ("cams.bag" if kind == "ros1" else "cams")
+    ts = get_typestore(Stores.ROS1_NOETIC if kind == "ros1" else Stores.ROS2_HUMBLE)
+    messages = [m for m in _messages(ts, views, n=len(views)) if m[0] == "/cam0/image_raw"]
+    if kind == "ros1":
+        from rosbags.rosbag1 import Writer
+
+        with Writer(bag) as w:
+            conn = w.add_connection("/cam0/image_raw", messages[0][1], typestore=ts)
+            for _, msgtype, t, msg in messages:
+                w.write(conn, t, ts.serialize_ros1(msg, msgtype))
+    else:
+        from rosbags.rosbag2 import Writer
+
+        with Writer(bag, version=8) as w:
+            conn = w.add_connection("/cam0/image_raw", messages[0][1], typestore=ts)
+            for _, msgtype, t, msg in messages:
+                w.write(conn, t, ts.serialize_cdr(msg, msgtype))
+    target = tmp_path / "target.yaml"
+    target.write_text(APRILGRID_YAML)
+    ds = tmp_path / "ds.json"
+    argv = ["detect", "--bag", str(bag), "--topics", "/cam0/image_raw", "--target", str(target)]
+    assert main([*argv, "-o", str(ds), "--no-progress"]) == 0
+    options = CalibrationOptions(model="radial", radial_terms=0, brown_terms=(), covariance=True)
+    calib = calibrate(load_dataset(ds), options)
+    cam, sig = calib.camera, calib.statistics["intrinsics_sigma"]
+    capsys.readouterr()
+    with capsys.disabled():
+        print(
+            f"{kind}: {calib.statistics['n_observations']} corners, RMS "
+            f"{calib.statistics['rms_px']:.4f} px; xp {cam.xp - LENS.cx:+.4f} "
+            f"({sig['xp_px']:.4f}), yp {cam.yp - LENS.cy:+.4f} ({sig['yp_px']:.4f}), "
+            f"c {cam.c - LENS.f:+.4f} ({sig['c_px']:.4f}) px"
+        )
+    for est, true, s in (
+        (cam.xp, LENS.cx, sig["xp_px"]),
+        (cam.yp, LENS.cy, sig["yp_px"]),
+        (cam.c, LENS.f, sig["c_px"]),
+    ):
+        assert abs(est - true) < 3 * s, (est, true, s)
+    calib_path = calib.save(tmp_path / "calib.json")
+    chain = tmp_path / "camchain.yaml"
+    assert main(["export", str(calib_path), "--to", "kalibr-equi", "-o", str(chain)]) in (0, 1)
+    doc = yaml.safe_load(chain.read_text())["cam0"]
+    assert doc["camera_model"] == "pinhole" and doc["distortion_model"] == "equidistant"
+    assert len(doc["intrinsics"]) == 4 and len(doc["distortion_coeffs"]) == 4
+    assert doc["resolution"] == [W, H] and doc["rostopic"].startswith("/")
+    capsys.readouterr()
