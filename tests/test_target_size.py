@@ -68,6 +68,13 @@ def test_cli_exits_2_naming_the_image(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "view_a.png" in err and "board is larger" in err and "full size" in err
     assert not out.exists()
+    # --no-size-check: the user insists (a sub-grid of 24 corners is written)
+    args = parser.parse_args(
+        [str(path), "--board", "chessboard:4x6:0.03", "-o", str(out), "--no-progress"]
+        + ["--no-size-check"]
+    )
+    assert run_cli(args) == 0 and out.exists()
+    capsys.readouterr()
 
 
 def test_real_fish_1_described_as_4x6_is_refused():

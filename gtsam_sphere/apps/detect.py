@@ -1902,6 +1902,7 @@ def detect_images(
     progress: bool = True,
     markers_csv: str | None = None,
     min_points: int = 1,
+    check_size: bool = True,
 ) -> tuple[dict, DetectionReport]:
     """Detect ``board`` in many images and build a ``gtsam-sphere/dataset@1`` dataset.
 
@@ -1920,6 +1921,9 @@ def detect_images(
         ``report.unknown_markers``. Required for ``"aruco"``.
     min_points : int, optional
         Images with fewer usable observations are skipped (and reported).
+    check_size : bool, optional
+        Chessboards: refuse a grid that is part of a larger pattern (see
+        :func:`detect_image`); ``--no-size-check`` turns it off.
 
     Returns
     -------
@@ -1970,7 +1974,7 @@ def detect_images(
             report.skipped.append((path, f"size {hw[0]}x{hw[1]} differs from {size[0]}x{size[1]}"))
             continue
         try:
-            found = detect_image(img, board)
+            found = detect_image(img, board, check_size=check_size)
         except TargetMismatchError as exc:
             raise TargetMismatchError(f"image {path}: {exc}") from None
         obs = []
@@ -2589,6 +2593,12 @@ def add_cli_arguments(parser: argparse.ArgumentParser) -> None:
         "--min-points", type=int, default=1, help="skip images with fewer observations"
     )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument(
+        "--no-size-check",
+        action="store_true",
+        help="chessboards: accept a grid although the pattern seems to continue beyond it "
+        "(by default detection stops: a board larger than described mislabels corners)",
+    )
     rec = parser.add_argument_group(
         "periphery recovery",
         "calibrate the detections, predict the board corners the detector missed (and "
@@ -2642,6 +2652,7 @@ def run_cli(args: argparse.Namespace) -> int:
             progress=not getattr(args, "no_progress", False),
             markers_csv=args.markers_csv,
             min_points=getattr(args, "min_points", 1),
+            check_size=not getattr(args, "no_size_check", False),
         )
     except (InputError, OSError) as exc:  # bad options or input files; a bug keeps its traceback
         print(f"gtsam-sphere detect: error: {exc}", file=sys.stderr)
