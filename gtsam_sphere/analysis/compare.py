@@ -9,6 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..core.camera import Model
+from ..core.errors import OptionsError
 from ..estimation.calibrate import CalibrationOptions, calibrate, initialise
 from ..io.dataset import Dataset, load_checkpoints, load_dataset, write_json_atomic
 from .evaluate import evaluate_calibration
@@ -102,8 +103,10 @@ def format_table(rows: list[CompareRow], units: str = "m") -> str:
 
 def add_cli_arguments(parser) -> None:
     """Arguments of ``gtsam-sphere compare``."""
-    parser.add_argument("dataset")
-    parser.add_argument("--checkpoints", required=True)
+    parser.add_argument(
+        "dataset", help="DATASET.json (with --checkpoints) or CALIB.json (with --with)"
+    )
+    parser.add_argument("--checkpoints", help="check points (the paper's tables; required then)")
     parser.add_argument("-o", "--output", help="write the table as JSON here")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--quiet", action="store_true")
@@ -111,6 +114,8 @@ def add_cli_arguments(parser) -> None:
 
 def run_cli(args) -> int:
     """``gtsam-sphere compare DATASET --checkpoints CP [-o OUT.json]``."""
+    if not getattr(args, "checkpoints", None):
+        raise OptionsError("compare DATASET needs --checkpoints CP.json (or CALIB.json --with)")
     dataset = load_dataset(args.dataset)
     ids, xyz, units = load_checkpoints(args.checkpoints)
     say = None if args.quiet else (lambda line: print(line, file=sys.stderr, flush=True))

@@ -10,6 +10,13 @@ Supported targets
 ``charuco:SXxSY:SQUARE:MARKER:DICT``
     An OpenCV ChArUco board of ``SX x SY`` squares. Target ids are ``"C{id:03d}"`` with
     OpenCV's ChArUco corner ids and OpenCV's board coordinates.
+``aprilgrid:COLSxROWS:TAG:SPACING`` (or ``--target target.yaml``, Kalibr's file)
+    Kalibr's AprilGrid: ``COLS x ROWS`` tag36h11 tags of side ``TAG`` metres with a
+    2-cell black border, gaps of ``SPACING`` times the tag side and a small black
+    square at every tag corner. Target ids ``"C{k:03d}"`` are Kalibr's grid points
+    (:meth:`BoardSpec.aprilgrid_corner_ids`), board frame as Kalibr's (x right, y up
+    the print, origin at the lower left corner of tag 0). :func:`read_kalibr_target`
+    also reads Kalibr's ``checkerboard`` files.
 ``aruco:DICT:MARKER``
     Individual ArUco markers of side ``MARKER`` metres spread over a scene. Each marker
     gives the target ``"M{id}"`` (the image of its centre) and ``"M{id}_{k}"`` (its
@@ -44,6 +51,18 @@ the board seen with a pose rotated by 180 degrees about its normal), but it brea
 any method that assumes one board pose shared by several images (e.g. a static
 board seen by a moving rig). Use a ChArUco board or an asymmetric chessboard then.
 
+A board larger than described
+-----------------------------
+``cv2.findChessboardCornersSB`` asked for a 4x6 grid on a board with 6x8 inner corners
+returns a 4x6 sub-grid, at an arbitrary offset and, under strong fisheye distortion,
+often jumping over whole rows or columns: every corner mislabelled. After detection the
+grid is therefore checked (:func:`_grid_continuation`): chessboard saddles one square
+beyond a border (predicted by local homographies), saddles between neighbouring grid
+corners, or grid cells holding more than one square mean the pattern continues, and
+detection stops with :class:`~gtsam_sphere.core.errors.TargetMismatchError` (exit code
+2) naming the image and what was seen. On the fish_1 / fish_2 images of the shared data
+every one of the 31 images described as 4x6 is refused and none described as 6x8 is.
+
 Periphery recovery (``gtsam-sphere detect ... --recover`` or ``--recover-with CALIB``)
 ----------------------------------------------------------------------------------------
 The detector misses what a fisheye shows worst: ChArUco corners whose markers are too
@@ -77,7 +96,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..core.errors import DatasetError, InputError, OptionsError
+from ..core.errors import DatasetError, InputError, OptionsError, TargetMismatchError
 from ..core.least_squares import Damping, levenberg_marquardt
 from ..core.robust import Loss, mad_sigma, robust_weight
 
@@ -89,6 +108,7 @@ __all__ = [
     "detect_image",
     "detect_images",
     "predict_and_refine",
+    "read_kalibr_target",
     "read_markers_csv",
     "recover_dataset",
     "refine_predicted_corners",
@@ -151,9 +171,18 @@ class BoardSpec:
     marker_m : float
         Side of an ArUco marker in metres (ChArUco, ArUco); 0 for chessboards.
     dictionary : str
-        ArUco dictionary name, e.g. ``"DICT_4X4_50"`` (ChArUco, ArUco); ``""`` otherwise.
+        ArUco dictionary name, e.g. ``"DICT_4X4_50"`` (ChArUco, ArUco,
+        ``"DICT_APRILTAG_36H11"`` for AprilGrids); ``""`` otherwise.
     text : str
         The specification string the board was parsed from.
+    spacing : float
+        AprilGrid: gap between neighbouring tags as a fraction of the tag side
+        (Kalibr's ``tagSpacing``); 0 otherwise.
+
+    AprilGrids (``kind == "aprilgrid"``, Kalibr's target) use ``cols`` / ``rows`` for
+    the tags along x / y (``tagCols``, ``tagRows``), ``marker_m`` for the tag side
+    (``tagSize``, edge to edge of the black border) and ``square_m`` for the tag pitch
+    ``tagSize * (1 + tagSpacing)``.
     """
 
     kind: str
@@ -163,6 +192,7 @@ class BoardSpec:
     marker_m: float = 0.0
     dictionary: str = ""
     text: str = ""
+    spacing: float = 0.0
     _charuco: object = field(default=None, repr=False, compare=False)
 
     @classmethod
@@ -215,6 +245,14 @@ class BoardSpec:
                 )
             _parse_dictionary(parts[4])
             return cls("charuco", sx, sy, square, marker, parts[4].upper(), text=str(text))
+        if kind == "aprilgrid":
+            if len(parts) != 4:
+                raise OptionsError(
+                    f"bad board {text!r}: expected 'aprilgrid:COLSxROWS:TAG_M:SPACING' "
+                    "(tags, tag side in metres, gap / tag side as Kalibr's tagSpacing)"
+                )
+            cols, rows = _parse_dims(parts[1], "AprilGrid size")
+            return cls.aprilgrid(cols, rows, _parse_length(parts[2], "tag size"), parts[3], text)
         if kind == "aruco":
             if len(parts) != 3:
                 raise OptionsError(f"bad board {text!r}: expected 'aruco:DICT:MARKER_M'")
@@ -222,8 +260,80 @@ class BoardSpec:
             marker = _parse_length(parts[2], "marker size")
             return cls("aruco", marker_m=marker, dictionary=parts[1].upper(), text=str(text))
         raise OptionsError(
-            f"bad board kind {parts[0]!r} in {text!r}: expected 'chessboard', 'charuco' or 'aruco'"
+            f"bad board kind {parts[0]!r} in {text!r}: expected 'chessboard', 'charuco', "
+            "'aprilgrid' or 'aruco'"
         )
+
+    @classmethod
+    def aprilgrid(
+        cls, cols: int, rows: int, tag_m: float, spacing: float | str, text: str = ""
+    ) -> BoardSpec:
+        """Kalibr's AprilGrid: ``cols x rows`` tag36h11 tags of side ``tag_m`` metres.
+
+        Parameters
+        ----------
+        cols, rows : int
+            Tags along the board's x / y axes (Kalibr ``tagCols``, ``tagRows``).
+        tag_m : float
+            Tag side in metres, edge to edge of the black border (``tagSize``).
+        spacing : float or str
+            Gap between tags over the tag side (``tagSpacing``, e.g. 0.3), in (0, 1].
+        text : str
+            Specification text to keep (default: ``"aprilgrid:COLSxROWS:TAG_M:SPACING"``).
+        """
+        try:
+            ratio = float(spacing)
+        except ValueError:
+            raise OptionsError(
+                f"bad tag spacing {spacing!r}: expected the gap over the tag side, e.g. 0.3"
+            ) from None
+        if not (np.isfinite(ratio) and 0.0 < ratio <= 1.0):
+            raise OptionsError(
+                f"bad tag spacing {spacing!r}: the gap over the tag side must be in (0, 1]"
+            )
+        if int(cols) < 1 or int(rows) < 1 or int(cols) * int(rows) > 587:
+            raise OptionsError(
+                f"bad AprilGrid size {cols}x{rows}: need 1 to 587 tags (tag36h11 has 587 ids)"
+            )
+        if not (np.isfinite(tag_m) and tag_m > 0):
+            raise OptionsError(f"bad tag size {tag_m!r}: must be a positive length in metres")
+        return cls(
+            "aprilgrid",
+            int(cols),
+            int(rows),
+            float(tag_m) * (1.0 + ratio),
+            float(tag_m),
+            "DICT_APRILTAG_36H11",
+            text=text or f"aprilgrid:{int(cols)}x{int(rows)}:{float(tag_m):g}:{ratio:g}",
+            spacing=ratio,
+        )
+
+    def aprilgrid_corner_ids(self, tag_id: int) -> list[str]:
+        """Target ids of an AprilGrid tag's corners, in OpenCV's corner order.
+
+        Kalibr numbers the corners of a ``tagCols x tagRows`` grid row by row on a
+        ``2 tagRows x 2 tagCols`` lattice, from the board's origin at the lower left
+        corner of tag 0 (x to the right, y up the printed target); tag ``t`` sits in
+        tag row ``t // tagCols``, column ``t % tagCols``, and its lower left, lower
+        right, upper right, upper left corners are points ``b, b + 1, b + 2 tagCols + 1,
+        b + 2 tagCols`` with ``b = (t // tagCols) 4 tagCols + (t % tagCols) 2`` (the
+        comments of ``GridCalibrationTargetAprilgrid.cpp`` in ethz-asl/kalibr draw this
+        ordering). Kalibr prints each tag's code matrix rotated by 180 degrees
+        (``createTargetPDF.py``: ``rotation=2``): read row by row from its upper left
+        cell as printed, white = 1, most significant bit first, a tag shows its tag36h11
+        code, whereas OpenCV's marker image shows it rotated by 180 degrees. OpenCV's
+        corners (clockwise from the upper left one of its upright marker) therefore
+        lie at the printed tag's lower right, lower left, upper left and upper right
+        corners: points ``b + 1, b, b + 2 tagCols, b + 2 tagCols + 1``.
+
+        Returns
+        -------
+        list of 4 str
+            ``"C{point:03d}"`` for OpenCV's corners 0, 1, 2, 3.
+        """
+        n = 2 * self.cols
+        base = (tag_id // self.cols) * 2 * n + (tag_id % self.cols) * 2
+        return [f"C{k:03d}" for k in (base + 1, base, base + n, base + n + 1)]
 
     # -- helpers -------------------------------------------------------------------
 
@@ -248,7 +358,8 @@ class BoardSpec:
         -------
         dict of str to ndarray, shape (3,)
             Target id -> ``(x, y, 0)`` in metres, board frame (``x`` along a row of
-            corners, ``y`` down the rows, board plane ``z = 0``). Empty for ``"aruco"``
+            corners, ``y`` down the rows, board plane ``z = 0``; AprilGrids: Kalibr's
+            frame and point numbering, see :meth:`aprilgrid_corner_ids`). Empty for ``"aruco"``
             (markers spread over a scene have no board frame; use a markers CSV).
         """
         if self.kind == "chessboard":
@@ -257,6 +368,14 @@ class BoardSpec:
                 for c in range(self.cols):
                     xyz = np.array([c * self.square_m, r * self.square_m, 0.0])
                     out[f"C{r * self.cols + c:03d}"] = xyz
+            return out
+        if self.kind == "aprilgrid":
+            out = {}
+            for r in range(2 * self.rows):
+                for c in range(2 * self.cols):
+                    x = (c // 2) * self.square_m + (c % 2) * self.marker_m
+                    y = (r // 2) * self.square_m + (r % 2) * self.marker_m
+                    out[f"C{r * 2 * self.cols + c:03d}"] = np.array([x, y, 0.0])
             return out
         if self.kind == "charuco":
             pts = np.asarray(self.charuco_board().getChessboardCorners(), dtype=float)
@@ -271,7 +390,117 @@ class BoardSpec:
             return self.cols * self.rows
         if self.kind == "charuco":
             return (self.cols - 1) * (self.rows - 1)
+        if self.kind == "aprilgrid":
+            return 4 * self.cols * self.rows
         return 0
+
+
+# --------------------------------------------------------------------------------------
+# Kalibr target files
+# --------------------------------------------------------------------------------------
+
+
+def _flat_yaml(path: str) -> dict[str, str]:
+    """The ``key: value`` lines of a flat YAML mapping (Kalibr's target files).
+
+    Comments (``#`` to the end of the line) and blank lines are skipped; values keep
+    their text with surrounding quotes removed. Nested mappings and lists are refused.
+    """
+    out: dict[str, str] = {}
+    with open(path, encoding="utf-8") as fh:
+        for lineno, raw in enumerate(fh, start=1):
+            line = raw.split("#", 1)[0].rstrip()
+            if not line.strip() or line.strip() in ("---", "..."):
+                continue
+            if line[0].isspace() or ":" not in line or line.lstrip().startswith("-"):
+                raise DatasetError(
+                    f"{path}:{lineno}: expected a flat 'key: value' line as in Kalibr's "
+                    f"target files, got {raw.strip()!r}"
+                )
+            key, value = (x.strip() for x in line.split(":", 1))
+            if len(value) >= 2 and value[0] == value[-1] and value[0] in "'\"":
+                value = value[1:-1]
+            if key in out:
+                raise DatasetError(f"{path}:{lineno}: key {key!r} given twice")
+            out[key] = value
+    return out
+
+
+def read_kalibr_target(path: str) -> BoardSpec:
+    """Read a Kalibr target description (``target.yaml``).
+
+    Supported (Kalibr wiki, "Calibration targets"):
+
+    ``target_type: aprilgrid``
+        ``tagCols``, ``tagRows`` (tags), ``tagSize`` (tag side in metres, edge to edge
+        of the black border), ``tagSpacing`` (gap between tags over ``tagSize``).
+        Tags of the tag36h11 family with Kalibr's 2-cell black border; target ids and
+        board coordinates as Kalibr numbers them (:meth:`BoardSpec.aprilgrid_corner_ids`:
+        ``"C{k:03d}"`` for Kalibr's grid point ``k``; board frame x right, y up the
+        printed target, origin at the lower left corner of tag 0, metres).
+    ``target_type: checkerboard``
+        ``targetCols``, ``targetRows`` (inner corners along x / y), ``rowSpacingMeters``,
+        ``colSpacingMeters`` (square sides, which must be equal here): the chessboard
+        ``chessboard:COLSxROWS:SQUARE`` (ids ``C{r * COLS + c:03d}``, as Kalibr's
+        ``r * cols + c``).
+
+    Parameters
+    ----------
+    path : str
+        The YAML file.
+
+    Returns
+    -------
+    BoardSpec
+
+    Raises
+    ------
+    DatasetError
+        When the file is not a flat mapping, a key is missing or a value is malformed;
+        the message names the file and the key.
+    OptionsError
+        For target types this package does not detect (``circlegrid``) and rectangular
+        checkerboard squares.
+    """
+    keys = _flat_yaml(path)
+
+    def get(name: str, kind: type):
+        if name not in keys:
+            raise DatasetError(f"{path}: Kalibr target file without {name!r}")
+        try:
+            value = kind(keys[name])
+        except ValueError:
+            what = "an integer" if kind is int else "a number"
+            raise DatasetError(f"{path}: {name}: {keys[name]!r} is not {what}") from None
+        if not (np.isfinite(value) and value > 0):
+            raise DatasetError(f"{path}: {name}: {keys[name]!r} must be positive")
+        return value
+
+    kind = keys.get("target_type", "").strip().lower()
+    if kind == "aprilgrid":
+        return BoardSpec.aprilgrid(
+            get("tagCols", int),
+            get("tagRows", int),
+            get("tagSize", float),
+            get("tagSpacing", float),
+            text=f"{path} (aprilgrid {keys['tagCols']}x{keys['tagRows']}, tagSize "
+            f"{keys['tagSize']} m, tagSpacing {keys['tagSpacing']})",
+        )
+    if kind == "checkerboard":
+        cols, rows = get("targetCols", int), get("targetRows", int)
+        dx, dy = get("colSpacingMeters", float), get("rowSpacingMeters", float)
+        if abs(dx - dy) > 1e-9 * max(dx, dy):
+            raise OptionsError(
+                f"{path}: colSpacingMeters {dx} and rowSpacingMeters {dy} differ: only square "
+                "chessboard squares are supported"
+            )
+        return BoardSpec.parse(f"chessboard:{cols}x{rows}:{dx!r}")
+    if "target_type" not in keys:
+        raise DatasetError(f"{path}: Kalibr target file without 'target_type'")
+    raise OptionsError(
+        f"{path}: target_type {keys['target_type']!r} is not supported: expected "
+        "'aprilgrid' or 'checkerboard'"
+    )
 
 
 # --------------------------------------------------------------------------------------
@@ -405,7 +634,9 @@ def _orient_chessboard(gray: np.ndarray, grid: np.ndarray) -> np.ndarray:
     return min(candidates, key=lambda g: float(g[0, 0].sum()))
 
 
-def _detect_chessboard(gray: np.ndarray, board: BoardSpec, attempts: int) -> dict[str, np.ndarray]:
+def _detect_chessboard(
+    gray: np.ndarray, board: BoardSpec, attempts: int, check_size: bool = True
+) -> dict[str, np.ndarray]:
     size = (board.cols, board.rows)
     corners = None
     flags_sb = cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY
@@ -431,6 +662,15 @@ def _detect_chessboard(gray: np.ndarray, board: BoardSpec, attempts: int) -> dic
     if corners is None or len(corners) != board.cols * board.rows:
         return {}
     corners, good = _refine_grid_corners(gray, corners.reshape(board.rows, board.cols, 2))
+    if check_size:
+        beyond = _grid_continuation(gray, corners)
+        if beyond:
+            raise TargetMismatchError(
+                f"the chessboard pattern continues beyond the described {board.cols}x"
+                f"{board.rows} grid ({'; '.join(beyond)}): the board is larger than "
+                f"{board.text!r} says; give its full size (inner corners, COLSxROWS), "
+                "otherwise the corners would be labelled wrongly"
+            )
     # orient with every corner (the grid must be complete), then leave out the failed ones
     order = np.arange(board.rows * board.cols, dtype=float).reshape(board.rows, board.cols)
     both = np.concatenate([corners, order[..., None]], axis=2)
@@ -492,6 +732,153 @@ def _refine_grid_corners(gray: np.ndarray, grid: np.ndarray) -> tuple[np.ndarray
     return refined.reshape(rows, cols, 2), ok.reshape(rows, cols)
 
 
+def _grid_continuation(gray: np.ndarray, grid: np.ndarray) -> list[str]:
+    """Where a detected chessboard grid is part of a larger pattern.
+
+    A grid of the described size found on a larger board is a sub-grid: either the
+    pattern continues beyond one of its borders, or (under strong distortion, seen on
+    real fisheye images) the detector skipped whole rows or columns, so that a board
+    corner lies between two "neighbouring" grid corners. Both are tested with the
+    saddle test: candidates are (1) the points one square beyond each border,
+    predicted by a homography fitted to the nearest block of up to 3x3 grid corners
+    (exact under perspective, close under local lens distortion) and (2) the
+    midpoints between neighbouring grid corners. Each candidate is searched with
+    ``cv2.cornerSubPix`` (half window 0.25 local spacing) from it and from four starts
+    0.2 spacing around it, each polished by the saddle fit; it counts as a board
+    corner when one of them succeeds, stays within 0.4 local spacing of the
+    candidate and 0.35 spacing away from every grid corner, and
+    :func:`saddle_score` (ring radius 0.25 spacing) is at least 0.5 with 8 grey levels
+    of contrast. On a printed board the points beyond a border lie on the board's
+    outer edge (a square's corner against the white margin, score about 0) and the
+    midpoints on square edges (score about 0). (3) The grid's cells must each be one
+    square: the ring around a cell's centre (radius 0.2 of its shortest side) must be
+    uniform; a ring contrast over 0.35 times the grid corners' median marks a cell that
+    holds edges or corners of several squares (the detector jumped over squares).
+
+    Parameters
+    ----------
+    gray : ndarray, shape (H, W), uint8
+        Grey image.
+    grid : ndarray, shape (rows, cols, 2)
+        Detected corners ``(u, v)`` in pixels, in grid order.
+
+    Returns
+    -------
+    list of str
+        One description per group of candidates (a border, or the gap between two grid
+        rows / columns) where at least 2 candidates and at least half of those inside
+        the image are board corners, e.g. ``"beyond the last row (5 of 6 points)"``,
+        and a line when at least 2 and a quarter of the cells hold several squares.
+        Empty when the grid looks complete.
+    """
+    rows, cols = grid.shape[:2]
+    h, w = gray.shape[:2]
+
+    def beyond(r_out: int | None, c_out: int | None) -> np.ndarray:
+        """Predicted corners of the grid line one square beyond a border.
+
+        ``r_out`` (-1 or rows) for a row beyond the first/last row, else ``c_out``.
+        Each point from a homography fitted to the nearest block of up to 3x3 grid
+        corners next to it: exact under perspective, close under local distortion.
+        """
+        n = cols if r_out is not None else rows
+        out = np.empty((n, 2))
+        for k in range(n):
+            lo_k = int(np.clip(k - 1, 0, max(n - 3, 0)))
+            ks = np.arange(lo_k, min(lo_k + 3, n))
+            if r_out is not None:
+                rs = np.arange(0, min(3, rows)) if r_out < 0 else np.arange(max(rows - 3, 0), rows)
+                rr, cc = np.meshgrid(rs, ks, indexing="ij")
+                target = (k, r_out)
+            else:
+                cs = np.arange(0, min(3, cols)) if c_out < 0 else np.arange(max(cols - 3, 0), cols)
+                rr, cc = np.meshgrid(ks, cs, indexing="ij")
+                target = (c_out, k)
+            src = np.stack([cc.ravel(), rr.ravel()], axis=1).astype(np.float64)
+            dst = grid[rr.ravel(), cc.ravel()]
+            hom, _ = cv2.findHomography(src, dst, 0)
+            if hom is None:
+                out[k] = np.nan
+                continue
+            q = hom @ np.array([target[0], target[1], 1.0])
+            out[k] = q[:2] / q[2] if abs(q[2]) > 1e-12 else np.nan
+        return out
+
+    groups: list[tuple[str, np.ndarray, np.ndarray]] = []
+    sp_col = np.linalg.norm(np.diff(grid, axis=0), axis=2)  # (rows-1, cols): along a column
+    sp_row = np.linalg.norm(np.diff(grid, axis=1), axis=2)  # (rows, cols-1): along a row
+    groups.append(("beyond the first row", beyond(-1, None), sp_col[0]))
+    groups.append(("beyond the last row", beyond(rows, None), sp_col[-1]))
+    groups.append(("beyond the first column", beyond(None, -1), sp_row[:, 0]))
+    groups.append(("beyond the last column", beyond(None, cols), sp_row[:, -1]))
+    for i in range(rows - 1):
+        groups.append(
+            (f"between grid rows {i} and {i + 1}", 0.5 * (grid[i] + grid[i + 1]), sp_col[i])
+        )
+    for j in range(cols - 1):
+        groups.append(
+            (
+                f"between grid columns {j} and {j + 1}",
+                0.5 * (grid[:, j] + grid[:, j + 1]),
+                sp_row[:, j],
+            )
+        )
+    corners = grid.reshape(-1, 2)
+    found = []
+    for name, cand, spacing in groups:
+        spacing = np.asarray(spacing, dtype=np.float64)
+        margin = np.maximum(0.3 * spacing, 4.0)
+        inside = (
+            np.all(np.isfinite(cand), axis=1)
+            & (spacing >= 8.0)
+            & (cand[:, 0] >= margin)
+            & (cand[:, 0] <= w - 1 - margin)
+            & (cand[:, 1] >= margin)
+            & (cand[:, 1] <= h - 1 - margin)
+        )
+        n_in = int(np.count_nonzero(inside))
+        if n_in < 2:
+            continue
+        hits = 0
+        for p, s in zip(cand[inside], spacing[inside]):
+            # several starts around the prediction (the distortion bends the lines)
+            offs = np.array([[0, 0], [1, 0], [-1, 0], [0, 1], [0, -1]], float) * 0.2 * s
+            starts = _subpix(gray, p[None] + offs, int(np.clip(0.25 * s, 2, 15)))
+            q, ok = _saddle_refine(gray, starts, return_mask=True, max_move=0.4 * s)
+            near = (
+                ok
+                & (np.linalg.norm(q - p, axis=1) <= 0.4 * s)
+                & (np.min(np.linalg.norm(q[:, None] - corners[None], axis=2), axis=1) >= 0.35 * s)
+            )
+            if not np.any(near):
+                continue
+            score, contrast = saddle_score(gray, q[near], radius=max(2.0, 0.25 * s))
+            if np.any((score >= 0.5) & (contrast >= 8.0)):
+                hits += 1
+        if hits >= 2 and 2 * hits >= n_in:
+            found.append(f"{name} ({hits} of {n_in} points)")
+    if rows >= 2 and cols >= 2:
+        # (3) every cell one square: uniform around its centre (ring contrast well below
+        # the grid corners')
+        _, corner_contrast = saddle_score(gray, corners, radius=3.0)
+        ref = float(np.median(corner_contrast))
+        cells = 0.25 * (grid[:-1, :-1] + grid[1:, :-1] + grid[:-1, 1:] + grid[1:, 1:])
+        side = np.minimum(
+            np.minimum(sp_row[:-1], sp_row[1:]), np.minimum(sp_col[:, :-1], sp_col[:, 1:])
+        )
+        ok = (side >= 8.0).ravel()
+        if np.count_nonzero(ok) >= 2 and ref >= 8.0:
+            centres = cells.reshape(-1, 2)[ok]
+            radius = np.maximum(0.2 * side.ravel()[ok], 2.0)
+            contrast = np.array(
+                [saddle_score(gray, c[None], radius=r)[1][0] for c, r in zip(centres, radius)]
+            )
+            busy = int(np.count_nonzero(contrast > 0.35 * ref))
+            if busy >= 2 and 4 * busy >= len(centres):
+                found.append(f"{busy} of {len(centres)} grid cells hold more than one square")
+    return found
+
+
 def _aruco_parameters():
     params = cv2.aruco.DetectorParameters()
     params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
@@ -506,7 +893,16 @@ def _detect_charuco(gray: np.ndarray, board: BoardSpec) -> dict[str, np.ndarray]
     cparams = cv2.aruco.CharucoParameters()
     cparams.minMarkers = 1
     detector = cv2.aruco.CharucoDetector(cb, cparams, _aruco_parameters())
-    ch_corners, ch_ids, _, _ = detector.detectBoard(gray)
+    ch_corners, ch_ids, _, marker_ids = detector.detectBoard(gray)
+    if marker_ids is not None:
+        known = set(np.asarray(cb.getIds()).ravel().tolist())
+        foreign = sorted({int(i) for i in np.asarray(marker_ids).ravel()} - known)
+        if len(foreign) >= 2:
+            raise TargetMismatchError(
+                f"ChArUco markers with ids {foreign} seen, but the described board "
+                f"{board.text!r} has ids {min(known)}..{max(known)}: the board is larger "
+                "(or another board is in view); give its full size in squares"
+            )
     if ch_ids is None or ch_corners is None or len(ch_ids) == 0:
         return {}
     pts = np.asarray(ch_corners, dtype=np.float64).reshape(-1, 2)
@@ -522,6 +918,271 @@ def _detect_charuco(gray: np.ndarray, board: BoardSpec) -> dict[str, np.ndarray]
         ok[~ok] = ok2
         refined, ids = refined[ok], ids[ok]
     return {f"C{i:03d}": refined[k] for k, i in enumerate(ids)}
+
+
+def _detect_aprilgrid(
+    gray: np.ndarray, board: BoardSpec, grow: bool = True
+) -> dict[str, np.ndarray]:
+    """Kalibr AprilGrid: tag36h11 tags by ``cv2.aruco``, corners polished as saddles.
+
+    The tags are found and decoded by ``cv2.aruco.ArucoDetector`` with the
+    ``DICT_APRILTAG_36h11`` dictionary and a 2-cell black border (Kalibr prints its tags
+    with ``blackTagBorder = 2``); each tag gives its 4 corners under Kalibr's point ids
+    (:meth:`BoardSpec.aprilgrid_corner_ids`). On an AprilGrid every tag corner touches
+    one of the small black squares in the gaps, so it is an X-corner: it is polished by
+    the saddle fit (:func:`_saddle_refine`, a few pixels around the corner, unbiased by
+    curved fisheye edges), retried from a small-window ``cv2.cornerSubPix`` estimate,
+    and dropped if it still is not a saddle (as for ChArUco corners) or scores below
+    0.75 on a 3 px ring (:func:`saddle_score`: a small square so narrow that the fit
+    also sees its other corners). With ``grow`` the
+    tags the decoder missed are then predicted from the layout and kept when their
+    code is seen (:func:`_grow_aprilgrid`).
+
+    Raises
+    ------
+    TargetMismatchError
+        When the tags contradict the layout: two or more tags with ids the grid does not
+        have (a larger grid), the same id twice (tags that are not the target's), or
+        most neighbouring tags not where the layout puts them (:func:`_aprilgrid_layout_check`).
+    """
+    params = _aruco_parameters()
+    params.markerBorderBits = 2
+    params.perspectiveRemovePixelPerCell = 8
+    detector = cv2.aruco.ArucoDetector(board.aruco_dictionary(), params)
+    corners, ids, _ = detector.detectMarkers(gray)
+    if ids is None or len(ids) == 0:
+        return {}
+    n_tags = board.cols * board.rows
+    ids = np.asarray(ids).ravel().astype(int)
+    quads = [np.asarray(q, dtype=np.float64).reshape(4, 2) for q in corners]
+    foreign = sorted(int(i) for i in ids if i >= n_tags)
+    if len(foreign) >= 2:
+        raise TargetMismatchError(
+            f"AprilGrid tags with ids {foreign} seen, but the described {board.cols}x"
+            f"{board.rows} grid has ids 0..{n_tags - 1}: the grid is larger than "
+            f"{board.text!r} says (or other tag36h11 tags are in view); give its full size"
+        )
+    keep = [k for k, i in enumerate(ids) if i < n_tags]
+    ids = ids[keep]
+    quads = [quads[k] for k in keep]
+    uniq, counts = np.unique(ids, return_counts=True)
+    if np.any(counts > 1):
+        raise TargetMismatchError(
+            f"AprilGrid tag ids {uniq[counts > 1].tolist()} seen twice: tags that are not "
+            "part of the target are in view (hide them), or two targets are"
+        )
+    drop = _aprilgrid_layout_check(board, ids, quads)
+    keep = [k for k, i in enumerate(ids) if int(i) not in drop]
+    ids, quads = ids[keep], [quads[k] for k in keep]
+    if not len(ids):
+        return {}
+    keys = [k for i in ids for k in board.aprilgrid_corner_ids(int(i))]
+    pts = np.concatenate(quads, axis=0)
+    refined, ok = _saddle_refine(gray, pts, return_mask=True)
+    if not np.all(ok):
+        retry, ok2 = _saddle_refine(gray, _subpix(gray, pts[~ok], 2), return_mask=True)
+        refined[~ok] = retry
+        ok[~ok] = ok2
+    out = {k: refined[j] for j, k in enumerate(keys) if ok[j]}
+    whole = {
+        int(i): refined[4 * n : 4 * n + 4]
+        for n, i in enumerate(ids)
+        if np.all(ok[4 * n : 4 * n + 4])
+    }
+    if grow:
+        for i, q in _grow_aprilgrid(gray, board, whole).items():
+            out.update(zip(board.aprilgrid_corner_ids(i), q))
+            whole[i] = q
+    # on strongly foreshortened tags the small squares are 2-3 px wide and the saddle
+    # fit also sees their other corners (0.2-0.5 px bias): such corners are no clean
+    # saddle on a 3 px ring (score below 0.75; clean ones score 0.9 and more)
+    if out:
+        keys = list(out)
+        score, _ = saddle_score(gray, np.array([out[k] for k in keys]), radius=3.0)
+        out = {k: out[k] for k, sc in zip(keys, score) if sc >= 0.75}
+    return out
+
+
+def _grow_aprilgrid(
+    gray: np.ndarray, board: BoardSpec, tags: dict[int, np.ndarray], rounds: int = 12
+) -> dict[int, np.ndarray]:
+    """Tags the decoder missed, predicted from the layout and verified by their code.
+
+    Under a fisheye the decoder misses most tags away from the centre (bent borders,
+    cells of 2-4 px). The layout says where they are. For a missing tag next to a found
+    one (same row or column of tags), its two corners facing the found tag (one small
+    square away) are predicted by the homography of the found tag's corners; its two
+    far corners by a quadratic along each lattice line through the found tag's two
+    corners and the refined near corner (the bend of the lens to second order: a
+    homography from one tag misses them by 6-15 px on the rendered 200 degree views,
+    more than the distance to the next saddle). Each prediction is polished by
+    ``cv2.cornerSubPix`` (half window 0.2 gap) and the saddle fit and must stay within
+    0.35 gap of it (the next saddle, across the small square, is one gap away). The tag
+    is kept only if its 10 x 10 cells, sampled through the homography of its refined
+    corners, show the expected code: correlation with the tag's pattern at least 0.8
+    and at most 2 of its 100 cells on the wrong side of the mid grey. Repeated while
+    tags are added (``rounds`` at most).
+
+    Parameters
+    ----------
+    gray : ndarray, shape (H, W), uint8
+    board : BoardSpec
+        AprilGrid.
+    tags : dict of int to ndarray, shape (4, 2)
+        Found tags: id -> refined corners in OpenCV's order (pixels).
+
+    Returns
+    -------
+    dict of int to ndarray, shape (4, 2)
+        The added tags, same form.
+    """
+    points = board.object_points_m()
+    dictionary = board.aruco_dictionary()
+    h, w = gray.shape
+    n2 = 2 * board.cols  # lattice columns
+    found = dict(tags)
+    added: dict[int, np.ndarray] = {}
+    cells = 10
+    centres = (np.arange(cells) + 0.5) / cells
+    cu, cv_ = np.meshgrid(centres, centres)
+    unit = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]], np.float32)
+
+    def lattice(key: str) -> tuple[int, int]:
+        return divmod(int(key[1:]), n2)
+
+    def polish(pred: np.ndarray, gap: float) -> np.ndarray | None:
+        if np.any(~np.isfinite(pred)) or np.any((pred < 3) | (pred > np.array([w - 4, h - 4]))):
+            return None
+        q = _subpix(gray, pred, int(np.clip(0.2 * gap, 2, 11)))
+        q, ok = _saddle_refine(gray, q, return_mask=True)
+        if not np.all(ok) or np.max(np.linalg.norm(q - pred, axis=1)) > 0.35 * gap:
+            return None
+        return q
+
+    def attempt(m: int, n: int) -> np.ndarray | None:
+        ids_m, ids_n = board.aprilgrid_corner_ids(m), board.aprilgrid_corner_ids(n)
+        where_n = dict(zip(ids_n, found[n]))
+        hom, _ = cv2.findHomography(np.array([points[k][:2] for k in ids_n]), found[n], 0)
+        if hom is None:
+            return None
+        horizontal = m // board.cols == n // board.cols
+        # near corners: on the lattice line next to n
+        lm = [lattice(k) for k in ids_m]
+        axis = 1 if horizontal else 0
+        n_lines = {lattice(k)[axis] for k in ids_n}
+        near_line = min({p[axis] for p in lm}, key=lambda x: min(abs(x - y) for y in n_lines))
+        near = [i for i, p in enumerate(lm) if p[axis] == near_line]
+        far = [i for i in range(4) if i not in near]
+        xy_m = np.array([points[k][:2] for k in ids_m])
+        pred = cv2.perspectiveTransform(xy_m[None], hom)[0]
+        side = float(np.mean(np.linalg.norm(pred - np.roll(pred, 1, axis=0), axis=1)))
+        gap = board.spacing * side
+        if gap < 3.0:
+            return None
+        q_near = polish(pred[near], gap)
+        if q_near is None:
+            return None
+        out = np.empty((4, 2))
+        out[near] = q_near
+        for i in far:
+            # the lattice line through corner i: n's two corners on it, m's near corner
+            other = 1 - axis
+            line = lm[i][other]
+            on_n = [k for k in ids_n if lattice(k)[other] == line]
+            on_m = [near[j] for j in range(2) if lm[near[j]][other] == line]
+            if len(on_n) != 2 or len(on_m) != 1:
+                return None
+            s = np.array([points[k][0 if horizontal else 1] for k in on_n])
+            s = np.append(s, xy_m[on_m[0]][0 if horizontal else 1])
+            uv = np.array([where_n[k] for k in on_n] + [out[on_m[0]]])
+            coef = np.polyfit(s, uv, 2)
+            s_far = xy_m[i][0 if horizontal else 1]
+            out[i] = coef[0] * s_far**2 + coef[1] * s_far + coef[2]
+        q_far = polish(out[far], gap)
+        if q_far is None:
+            return None
+        out[far] = q_far
+        # the code, sampled through the refined corners' homography
+        h_tag = cv2.getPerspectiveTransform(unit, out.astype(np.float32))
+        uv = cv2.perspectiveTransform(
+            np.stack([cu.ravel(), cv_.ravel()], axis=1)[None].astype(np.float64), h_tag
+        )[0]
+        vals = _sample(gray, uv)
+        bits = cv2.aruco.generateImageMarker(dictionary, m, cells, borderBits=2)
+        expect = (np.asarray(bits).ravel() > 127).astype(np.float64)
+        if vals.std() == 0:
+            return None
+        corr = float(np.corrcoef(vals, expect)[0, 1])
+        mid = 0.5 * (vals[expect > 0].mean() + vals[expect == 0].mean())
+        wrong = int(np.count_nonzero((vals > mid) != (expect > 0)))
+        return out if corr >= 0.8 and wrong <= 2 else None
+
+    for _ in range(rounds):
+        new = {}
+        for m in range(board.cols * board.rows):
+            if m in found:
+                continue
+            r, c = divmod(m, board.cols)
+            for rr, cc in ((r, c - 1), (r, c + 1), (r - 1, c), (r + 1, c)):
+                n = rr * board.cols + cc
+                if 0 <= rr < board.rows and 0 <= cc < board.cols and n in found:
+                    q = attempt(m, n)
+                    if q is not None:
+                        new[m] = q
+                        break
+        if not new:
+            break
+        found.update(new)
+        added.update(new)
+    return added
+
+
+def _aprilgrid_layout_check(board: BoardSpec, ids: np.ndarray, quads: list[np.ndarray]) -> set[int]:
+    """Tags whose corners contradict their neighbours; raise when most tags do.
+
+    For every pair of detected tags that are neighbours in the layout (same tag row,
+    next column; or next row), the homography from the board coordinates of one tag's
+    corners to their image positions predicts the other tag's corners; a pair is
+    inconsistent when the prediction misses by more than 0.3 of the tag's image side
+    (under perspective it is exact, and the lens distortion over one tag pitch stays
+    well below that). With at least 2 pairs and more than half inconsistent the layout
+    (tag columns, rows or spacing) does not describe the board: raise. Otherwise a tag
+    whose every checked pair is inconsistent has a corner off (seen on rendered fisheye
+    views: a quadrilateral corner on the neighbouring small square, 20 px away) and is
+    returned for dropping.
+
+    Returns
+    -------
+    set of int
+        Ids of the tags to leave out.
+    """
+    points = board.object_points_m()
+    where = {int(i): q for i, q in zip(ids, quads)}
+    bad = total = 0
+    pairs: dict[int, list[bool]] = {}
+    for i, q in where.items():
+        src = np.array([points[k][:2] for k in board.aprilgrid_corner_ids(i)])
+        hom, _ = cv2.findHomography(src, q, 0)
+        if hom is None:
+            continue
+        side = float(np.mean(np.linalg.norm(q - np.roll(q, 1, axis=0), axis=1)))
+        for j in (i + 1, i + board.cols):
+            if j not in where or (j == i + 1 and j % board.cols == 0):
+                continue
+            other = np.array([points[k][:2] for k in board.aprilgrid_corner_ids(j)])
+            pred = cv2.perspectiveTransform(other[None], hom)[0]
+            total += 1
+            off = bool(np.max(np.linalg.norm(pred - where[j], axis=1)) > 0.3 * side)
+            bad += off
+            pairs.setdefault(i, []).append(off)
+            pairs.setdefault(j, []).append(off)
+    if total >= 2 and 2 * bad > total:
+        raise TargetMismatchError(
+            f"AprilGrid tags are not where the {board.cols}x{board.rows} layout of "
+            f"{board.text!r} puts them ({bad} of {total} neighbouring tag pairs off by more "
+            "than 0.3 tag): check tagCols, tagRows and tagSpacing"
+        )
+    return {i for i, offs in pairs.items() if all(offs)}
 
 
 def _detect_aruco(gray: np.ndarray, board: BoardSpec) -> dict[str, np.ndarray]:
@@ -956,7 +1617,9 @@ def _fit_aruco_marker(
     return corners, centre
 
 
-def detect_image(gray: np.ndarray, board: BoardSpec, *, attempts: int = 3) -> dict[str, np.ndarray]:
+def detect_image(
+    gray: np.ndarray, board: BoardSpec, *, attempts: int = 3, check_size: bool = True
+) -> dict[str, np.ndarray]:
     """Detect the targets of ``board`` in one image.
 
     Parameters
@@ -970,6 +1633,10 @@ def detect_image(gray: np.ndarray, board: BoardSpec, *, attempts: int = 3) -> di
         with and without ``CALIB_CB_NORMALIZE_IMAGE``) before falling back to
         ``cv2.findChessboardCorners``. The detector is seeded (``cv2.setRNGSeed``), so
         results are reproducible; this resets OpenCV's global RNG.
+    check_size : bool, optional
+        Chessboards: test that the detected grid is the whole pattern
+        (:func:`_grid_continuation`: no board corner one square beyond a border or
+        between two neighbouring grid corners) and raise otherwise.
 
     Returns
     -------
@@ -978,12 +1645,20 @@ def detect_image(gray: np.ndarray, board: BoardSpec, *, attempts: int = 3) -> di
         top-left pixel). Empty when nothing is found. Chessboards are all-or-nothing
         (every inner corner or none); ChArUco boards may be partial; ArUco markers give
         ``"M{id}"`` (centre) and ``"M{id}_{k}"`` (corners).
+
+    Raises
+    ------
+    TargetMismatchError
+        When the image shows a larger board than ``board`` describes (see
+        ``check_size``); the message says where the pattern continues.
     """
     g = _to_gray(gray)
     if board.kind == "chessboard":
-        return _detect_chessboard(g, board, attempts)
+        return _detect_chessboard(g, board, attempts, check_size)
     if board.kind == "charuco":
         return _detect_charuco(g, board)
+    if board.kind == "aprilgrid":
+        return _detect_aprilgrid(g, board)
     if board.kind == "aruco":
         return _detect_aruco(g, board)
     raise ValueError(f"unknown board kind {board.kind!r}")
@@ -1227,6 +1902,7 @@ def detect_images(
     progress: bool = True,
     markers_csv: str | None = None,
     min_points: int = 1,
+    check_size: bool = True,
 ) -> tuple[dict, DetectionReport]:
     """Detect ``board`` in many images and build a ``gtsam-sphere/dataset@1`` dataset.
 
@@ -1245,6 +1921,9 @@ def detect_images(
         ``report.unknown_markers``. Required for ``"aruco"``.
     min_points : int, optional
         Images with fewer usable observations are skipped (and reported).
+    check_size : bool, optional
+        Chessboards: refuse a grid that is part of a larger pattern (see
+        :func:`detect_image`); ``--no-size-check`` turns it off.
 
     Returns
     -------
@@ -1260,6 +1939,9 @@ def detect_images(
     ------
     ValueError
         If ``board`` is ``"aruco"`` without ``markers_csv``, or no image is usable.
+    TargetMismatchError
+        If an image shows a larger target than ``board`` describes; the message names
+        the image.
     """
     report = DetectionReport()
     survey = None
@@ -1291,7 +1973,10 @@ def detect_images(
         elif hw != size:
             report.skipped.append((path, f"size {hw[0]}x{hw[1]} differs from {size[0]}x{size[1]}"))
             continue
-        found = detect_image(img, board)
+        try:
+            found = detect_image(img, board, check_size=check_size)
+        except TargetMismatchError as exc:
+            raise TargetMismatchError(f"image {path}: {exc}") from None
         obs = []
         for key in sorted(found):
             uv = found[key]
@@ -1853,12 +2538,47 @@ def add_cli_arguments(parser: argparse.ArgumentParser) -> None:
         default="auto",
         help="--sync timestamp: unit of the numbers in the names (default: from their digits)",
     )
-    parser.add_argument(
+    bag = parser.add_argument_group(
+        "ROS bags",
+        "images from a ROS1 .bag or ROS2 bag (needs the rosbags package: gtsam-sphere[ros]); "
+        "one topic: dataset@1, several: a rig (dataset@2) paired by header stamp",
+    )
+    bag.add_argument(
+        "--bag", metavar="FILE", default=None, help="ROS1 .bag file or ROS2 bag folder"
+    )
+    bag.add_argument(
+        "--topics",
+        nargs="+",
+        metavar="TOPIC",
+        default=None,
+        help="image topics (Image or CompressedImage)",
+    )
+    bag.add_argument(
+        "--bag-freq",
+        type=float,
+        default=None,
+        metavar="HZ",
+        help="keep at most one image per topic every 1/HZ seconds (as Kalibr's --bag-freq)",
+    )
+    bag.add_argument(
+        "--approx-sync",
+        type=float,
+        default=0.02,
+        metavar="S",
+        help="several topics: largest stamp difference (s) in a frame (default 0.02, as Kalibr)",
+    )
+    target = parser.add_mutually_exclusive_group(required=True)
+    target.add_argument(
         "--board",
-        required=True,
         metavar="SPEC",
         help="target: 'chessboard:COLSxROWS:SQUARE_M' (inner corners), "
-        "'charuco:SXxSY:SQUARE_M:MARKER_M:DICT' or 'aruco:DICT:MARKER_M'",
+        "'charuco:SXxSY:SQUARE_M:MARKER_M:DICT', 'aprilgrid:COLSxROWS:TAG_M:SPACING' "
+        "(Kalibr's) or 'aruco:DICT:MARKER_M'",
+    )
+    target.add_argument(
+        "--target",
+        metavar="TARGET.yaml",
+        help="Kalibr target file (target_type aprilgrid or checkerboard) instead of --board",
     )
     parser.add_argument(
         "--markers-csv",
@@ -1873,6 +2593,12 @@ def add_cli_arguments(parser: argparse.ArgumentParser) -> None:
         "--min-points", type=int, default=1, help="skip images with fewer observations"
     )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument(
+        "--no-size-check",
+        action="store_true",
+        help="chessboards: accept a grid although the pattern seems to continue beyond it "
+        "(by default detection stops: a board larger than described mislabels corners)",
+    )
     rec = parser.add_argument_group(
         "periphery recovery",
         "calibrate the detections, predict the board corners the detector missed (and "
@@ -1903,6 +2629,15 @@ def add_cli_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def board_from_args(args: argparse.Namespace) -> BoardSpec:
+    """The target of ``--board SPEC`` or ``--target TARGET.yaml`` (Kalibr)."""
+    if getattr(args, "target", None):
+        return read_kalibr_target(args.target)
+    if not getattr(args, "board", None):
+        raise OptionsError("no target: give --board SPEC or --target TARGET.yaml")
+    return BoardSpec.parse(args.board)
+
+
 def run_cli(args: argparse.Namespace) -> int:
     """Run the ``detect`` sub-command; return the process exit code (0 = success)."""
     if getattr(args, "camera", None):  # a rig: detect_rig.run_cli (the command line routes it)
@@ -1910,13 +2645,14 @@ def run_cli(args: argparse.Namespace) -> int:
     if not args.images:
         raise OptionsError("no images: give IMAGES (one camera) or --camera ID=DIR_OR_GLOB (rig)")
     try:
-        board = BoardSpec.parse(args.board)
+        board = board_from_args(args)
         dataset, report = detect_images(
             list(args.images),
             board,
             progress=not getattr(args, "no_progress", False),
             markers_csv=args.markers_csv,
             min_points=getattr(args, "min_points", 1),
+            check_size=not getattr(args, "no_size_check", False),
         )
     except (InputError, OSError) as exc:  # bad options or input files; a bug keeps its traceback
         print(f"gtsam-sphere detect: error: {exc}", file=sys.stderr)

@@ -35,7 +35,7 @@ import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ..core.errors import InputError, OptionsError
+from ..core.errors import InputError, OptionsError, TargetMismatchError
 
 #: file name extensions of a camera folder's images
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".pgm", ".ppm", ".webp")
@@ -254,6 +254,7 @@ def detect_rig(
     recover_with=None,
     recover_options: dict | None = None,
     recover_progress=None,
+    check_size: bool = True,
 ):
     """Detect ``board`` in each camera's images and write a ``gtsam-sphere/dataset@2``.
 
@@ -264,7 +265,7 @@ def detect_rig(
     board : BoardSpec
     sync, tolerance_s, timestamp_unit
         See :func:`pair_images`.
-    progress, markers_csv, min_points
+    progress, markers_csv, min_points, check_size
         As :func:`gtsam_sphere.apps.detect.detect_images`, per camera.
     recover : bool
         Recover the corners the detector missed, per camera
@@ -307,10 +308,17 @@ def detect_rig(
         paths = images[cid]
         try:
             ds, report = detect_images(
-                paths, board, progress=progress, markers_csv=markers_csv, min_points=min_points
+                paths,
+                board,
+                progress=progress,
+                markers_csv=markers_csv,
+                min_points=min_points,
+                check_size=check_size,
             )
         except OptionsError:
             raise
+        except TargetMismatchError as exc:
+            raise TargetMismatchError(f"camera {cid!r}: {exc}") from None
         except InputError as exc:
             raise InputError(f"camera {cid!r}: {exc}") from None
         reports[cid] = report
@@ -376,7 +384,7 @@ def detect_rig(
 def run_cli(args: argparse.Namespace) -> int:
     """Run ``gtsam-sphere detect --camera ID=DIR ...``: a rig, written as dataset@2."""
     from ..io.calibration import load_calibration
-    from .detect import BoardSpec, write_json_atomic
+    from .detect import board_from_args, write_json_atomic
 
     if args.images:
         raise OptionsError(
@@ -385,7 +393,7 @@ def run_cli(args: argparse.Namespace) -> int:
         )
     from ..core.camera import Model
 
-    board = BoardSpec.parse(args.board)
+    board = board_from_args(args)
     recover_with = None
     if getattr(args, "recover_with", None):
         from ..io.calibration import load_calibration
@@ -423,6 +431,7 @@ def run_cli(args: argparse.Namespace) -> int:
             "max_offset_px": args.recover_max_offset_px,
         },
         recover_progress=say,
+        check_size=not getattr(args, "no_size_check", False),
     )
     write_json_atomic(dataset, args.output)
     for cid, report in reports.items():

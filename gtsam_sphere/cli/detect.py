@@ -21,6 +21,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args) -> int:
     """Run ``gtsam-sphere detect``."""
+    if getattr(args, "bag", None):  # images from a ROS bag: a folder per topic
+        from ..apps import rosbag_images
+
+        return rosbag_images.run_cli(args)
     if getattr(args, "camera", None):  # a folder per camera: a rig, dataset@2
         from ..apps import detect_rig
 

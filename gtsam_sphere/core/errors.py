@@ -8,6 +8,7 @@
         |   +-- DegenerateGeometryError   the images cannot calibrate the camera
         +-- InitialisationError           no image could be initialised
         +-- OptionsError                  a bad option or argument
+        +-- TargetMismatchError           the images show a target other than the one described
 
 The command line maps these classes to exit codes in one table
 (:data:`gtsam_sphere.cli.EXIT_CODES`). A ``ValueError`` that is not an
@@ -34,6 +35,7 @@ __all__ = [
     "InitialisationError",
     "InputError",
     "OptionsError",
+    "TargetMismatchError",
 ]
 
 
@@ -83,3 +85,12 @@ class InitialisationError(InputError):
 
 class OptionsError(InputError):
     """An option or argument is invalid (command line or options object)."""
+
+
+class TargetMismatchError(InputError):
+    """The images contradict the target description (e.g. the board is larger than described).
+
+    Raised by detection when, say, a chessboard's pattern continues beyond the
+    described grid or tags carry ids the described layout does not have: the corners
+    would otherwise be labelled wrongly. The message names the image and what was seen.
+    """

@@ -719,12 +719,61 @@ def _inside_image(q: np.ndarray, width: int, height: int) -> bool:
 # --------------------------------------------------------------------------------------
 
 
-def _board_texture(board: BoardSpec, px_per_square: int) -> tuple[np.ndarray, np.ndarray]:
+def _aprilgrid_texture(board: BoardSpec, px_per_tag: int) -> tuple[np.ndarray, np.ndarray, float]:
+    """Texture of Kalibr's AprilGrid (see :func:`_board_texture`), rows along board ``+y``.
+
+    Tags of 10 x 10 cells (the 6 x 6 tag36h11 code inside a 2-cell black border, as
+    Kalibr prints them: OpenCV's marker image turned by 180 degrees), tag 0 at the
+    board origin, tag ``t`` in tag row ``t // cols``
+    (board ``y`` up the printed target), column ``t % cols``; a black square of the gap's
+    side at every tag corner (inner and outer), one tag pitch of white margin around.
+    ``px_per_tag`` is rounded up to a multiple of 10 that makes the gap a whole number of
+    texels.
+    """
+    cells = 10
+    ppc = max(1, int(np.ceil(px_per_tag / cells)))
+    for _ in range(1000):
+        gap = board.spacing * cells * ppc
+        if abs(gap - round(gap)) < 1e-6:
+            break
+        ppc += 1
+    else:
+        raise ValueError(
+            f"tag spacing {board.spacing} is not a multiple of 1/{cells * ppc} of the tag: "
+            "cannot render it on a texel grid"
+        )
+    tag, gap = cells * ppc, int(round(board.spacing * cells * ppc))
+    pitch = tag + gap
+    margin = pitch
+    width = board.cols * pitch - gap + 2 * margin
+    height = board.rows * pitch - gap + 2 * margin
+    tex = np.full((height, width), 255, dtype=np.uint8)
+    dictionary = board.aruco_dictionary()
+    for t in range(board.cols * board.rows):
+        y0 = margin + (t // board.cols) * pitch
+        x0 = margin + (t % board.cols) * pitch
+        img = cv2.aruco.generateImageMarker(dictionary, t, tag, borderBits=2)
+        # Kalibr prints OpenCV's marker image rotated by 180 degrees (BoardSpec.
+        # aprilgrid_corner_ids); texture rows go up the page: flipud(rot180) = fliplr
+        tex[y0 : y0 + tag, x0 : x0 + tag] = np.fliplr(img)
+    for i in range(board.rows + 1):
+        for j in range(board.cols + 1):
+            y0, x0 = margin + i * pitch - gap, margin + j * pitch - gap
+            tex[y0 : y0 + gap, x0 : x0 + gap] = 0
+    texel_m = board.marker_m / tag
+    return tex, -np.array([1.0, 1.0]) * margin * texel_m, texel_m
+
+
+def _board_texture(board: BoardSpec, px_per_square: int) -> tuple[np.ndarray, np.ndarray, float]:
     """High-resolution board texture and the board coordinates of its texel origin.
 
-    Returns ``(texture uint8 (H, W), origin_m (2,))``: texel ``(i, j)`` covers board
-    ``x`` in ``origin + [j, j+1) * square / px_per_square`` (likewise ``y`` with ``i``).
+    Returns ``(texture uint8 (H, W), origin_m (2,), texel_m)``: texel ``(i, j)`` covers
+    board ``x`` in ``origin + [j, j+1) * texel_m`` (likewise ``y`` with ``i``);
+    ``texel_m = square / px_per_square`` (AprilGrids: ``px_per_square`` texels per tag,
+    see :func:`_aprilgrid_texture`).
     """
+    if board.kind == "aprilgrid":
+        return _aprilgrid_texture(board, px_per_square)
     pps = int(px_per_square)
     if board.kind == "chessboard":
         nx, ny = board.cols + 1, board.rows + 1  # squares
@@ -736,14 +785,16 @@ def _board_texture(board: BoardSpec, px_per_square: int) -> tuple[np.ndarray, np
         tex = np.where(dark, 0, 255).astype(np.uint8)
         # Board frame origin is the first inner corner, one square inside the board.
         origin = -np.array([1.0, 1.0]) * board.square_m - margin / pps * board.square_m
-        return tex, origin
+        return tex, origin, board.square_m / pps
     if board.kind == "charuco":
         margin = pps
         size = (board.cols * pps + 2 * margin, board.rows * pps + 2 * margin)
         tex = board.charuco_board().generateImage(size, marginSize=margin, borderBits=1)
         origin = -np.array([1.0, 1.0]) * margin / pps * board.square_m
-        return np.asarray(tex, dtype=np.uint8), origin
-    raise ValueError(f"rendering supports chessboard and charuco boards, not {board.kind!r}")
+        return np.asarray(tex, dtype=np.uint8), origin, board.square_m / pps
+    raise ValueError(
+        f"rendering supports chessboard, charuco and aprilgrid boards, not {board.kind!r}"
+    )
 
 
 def render_board_image(
@@ -772,7 +823,9 @@ def render_board_image(
     Parameters
     ----------
     board : BoardSpec
-        ``"chessboard"`` or ``"charuco"`` board; the world frame is the board frame.
+        ``"chessboard"``, ``"charuco"`` or ``"aprilgrid"`` board (Kalibr's frame: x
+        right, y up the printed target, z towards its viewer); the world frame is the
+        board frame.
     lens_project : callable
         ``project(points_cam (N, 3)) -> uv (N, 2)`` pixels.
     lens_unproject : callable
@@ -784,7 +837,8 @@ def render_board_image(
     width, height : int
         Image size in pixels.
     px_per_square : int, optional
-        Texture resolution (texels per board square).
+        Texture resolution (texels per board square; AprilGrids: per tag, rounded up
+        to a multiple of 10).
     supersample : int, optional
         Sub-samples per pixel along each axis.
     background : int, optional
@@ -806,8 +860,7 @@ def render_board_image(
     """
     R = np.asarray(cam_from_world_R, dtype=np.float64).reshape(3, 3)
     t = np.asarray(cam_from_world_t, dtype=np.float64).reshape(3)
-    tex, origin = _board_texture(board, px_per_square)
-    texel_m = board.square_m / px_per_square
+    tex, origin, texel_m = _board_texture(board, px_per_square)
     ss = int(supersample)
     offs = (np.arange(ss) + 0.5) / ss - 0.5
     acc = np.zeros((height, width), dtype=np.float64)
@@ -846,8 +899,10 @@ def render_board_image(
         pts = np.array([obj[k] for k in keys]) @ R.T + t
         uv = np.asarray(lens_project(pts), dtype=np.float64).reshape(-1, 2)
         for k, p, q in zip(keys, pts, uv, strict=True):
-            # Corners seen from behind the board are not visible.
-            facing = float(normal @ p) > 0  # camera on the printed side: normal . p_cam > 0
+            # Corners seen from behind the board are not visible. The camera is on the
+            # printed side when normal . p_cam > 0 (board y down the print), < 0 for
+            # AprilGrids (Kalibr's frame: y up the print, z towards the viewer).
+            facing = float(normal @ p) * (-1.0 if board.kind == "aprilgrid" else 1.0) > 0
             if facing and _inside_image(q, width, height):
                 truth[k] = q
     return image, truth
