@@ -310,7 +310,8 @@ class IntrinsicsTracker:
                     graph.add(gtsam.PriorFactorPoint3(k, p, prior))
         graph.add(self.online.observation_factor(uv_px, xk, ik, keys, points_xyz))
         self.isam.update(graph, values)
-        theta = np.asarray(self.isam.calculateEstimate([ik]).atVector(ik), float)
+        # the whole estimate: GTSAM 4.3a1 (Python 3.10) has no keyed calculateEstimate
+        theta = np.asarray(self.isam.calculateEstimate().atVector(ik), float)
         self._last_theta = theta
         self.estimates.append(theta)
         self.t += 1
@@ -324,4 +325,4 @@ class IntrinsicsTracker:
     def pose(self, t: int) -> gtsam.Pose3:
         """Current estimate of frame ``t``'s ``world_from_cam``."""
         k = camera_pose_key(t)
-        return self.isam.calculateEstimate([k]).atPose3(k)
+        return self.isam.calculateEstimate().atPose3(k)
