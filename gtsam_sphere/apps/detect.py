@@ -2101,10 +2101,11 @@ def _board_neighbour_spacing(
 ) -> np.ndarray:
     """Predicted distance (px) from each board point (N, 3) to its nearest grid neighbour."""
     offsets = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0]], float) * step_m
-    centre = camera.project(xyz @ R.T + t)
+    # recovery predicts corners past the field the detected ones cover: extrapolate
+    centre = camera.project(xyz @ R.T + t, valid_only=False)
     dist = np.full(len(xyz), np.inf)
     for d in offsets:
-        q = camera.project((xyz + d) @ R.T + t)
+        q = camera.project((xyz + d) @ R.T + t, valid_only=False)
         dist = np.minimum(dist, np.linalg.norm(q - centre, axis=1))
     return dist
 
@@ -2185,7 +2186,7 @@ def predict_and_refine(
     mxyz = np.array([points[k] for k in missing], float)
     p = mxyz @ res.R.T + res.t
     inc = np.degrees(np.arctan2(np.hypot(p[:, 0], p[:, 1]), p[:, 2]))
-    pred = camera.project(p)
+    pred = camera.project(p, valid_only=False)  # missed corners may lie past the field
     spacing = _board_neighbour_spacing(camera, res.R, res.t, mxyz, board.square_m)
     ok = (
         np.all(np.isfinite(pred), axis=1)
@@ -2197,7 +2198,7 @@ def predict_and_refine(
         & (pred[:, 1] <= h - 1)
     )
     added: dict[str, np.ndarray] = {}
-    windows = np.clip(2 * np.round(0.35 * spacing).astype(int) + 1, 5, 21)
+    windows = np.clip(2 * np.round(0.35 * np.nan_to_num(spacing)).astype(int) + 1, 5, 21)
     for win in np.unique(windows[ok]):
         sel = np.flatnonzero(ok & (windows == win))
         found = refine_predicted_corners(

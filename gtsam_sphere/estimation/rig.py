@@ -439,7 +439,7 @@ def _rig_residuals(calib: Calibration, camera, R: np.ndarray, t: np.ndarray, xyz
     xyz = np.array([xyz_of[tg] for tg in obs["target"]], float)
     pc = np.einsum("nij,nj->ni", R[ims], xyz) + t[ims]
     with np.errstate(invalid="ignore", divide="ignore"):
-        uv = camera.project(pc)
+        uv = camera.project(pc, valid_only=False)
     return np.asarray(obs["uv_px"], float) - uv
 
 
