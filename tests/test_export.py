@@ -240,3 +240,50 @@ def test_cli_bad_input(tmp_path, capsys):
         r_deg = np.degrees(np.linalg.norm(d, axis=1) / cam.c)
         patch = (r_deg > 93) & (np.abs(np.arctan2(d[:, 1], d[:, 0]) - 0.6435) < 0.1)  # corner
         export_calibration(bare_calibration(cam, ring[patch]), "opencv-fisheye")
+
+
+def test_export_reports_the_error_outside_the_observed_region(cam, tmp_path, caplog):
+    yaml = pytest.importorskip("yaml")
+    obs = observed_pixels(cam, 40.0)
+    # the camera is equidistant well past the observed 40 deg: cv2.fisheye extrapolates it
+    with caplog.at_level("WARNING", logger="gtsam_sphere.apps.export"):
+        res = export_camera(cam, "opencv-fisheye", obs, n_samples=3000)
+    assert not caplog.records
+    o = res.outside
+    assert o["from_deg"] == pytest.approx(res.max_incidence_deg_region)
+    assert o["to_deg"] == pytest.approx(o["from_deg"] + 20.0)
+    assert o["n"] > 100 and o["max_px"] < 0.05 and not o["exceeds"]
+    assert o["unproject_max_deg"] < 0.01
+    assert sum(b["n"] for b in o["bands"]) == o["n"]
+    # an independent check of the band: cv2 against the calibrated pixels
+    w, h = cam.width, cam.height
+    uv = np.stack(np.meshgrid(np.arange(0, w, 7.0), np.arange(0, h, 7.0)), -1).reshape(-1, 2)
+    rays = pixel_rays(cam, uv)
+    inc = incidence_deg(rays)
+    band = (inc > o["from_deg"]) & (inc <= o["to_deg"])
+    err = np.linalg.norm(_cv2_fisheye(res, rays[band]) - uv[band], axis=1)
+    assert err.max() < 0.05
+    # written: the JSON fit block and the summary (Kalibr comments) both state it
+    doc = json.loads(write_export(res, tmp_path / "f.json").read_text())
+    assert doc["fit"]["outside"]["max_px"] == pytest.approx(o["max_px"])
+    assert doc["fit"]["rms_px"] == pytest.approx(res.rms_px)
+    equi = export_camera(cam, "kalibr-equi", obs, n_samples=3000)
+    text = write_export(equi, tmp_path / "e.yaml").read_text()
+    assert "# " + equi.summary().splitlines()[-1].strip() in text.replace("#   ", "# ")
+    assert "outside it (" in text and "inside the observed region" in text
+    assert yaml.safe_load(text)["cam0"]["camera_model"] == "pinhole"
+
+
+def test_export_warns_when_the_model_diverges_past_the_observed_field(cam, caplog):
+    obs = observed_pixels(cam, 55.0)
+    with caplog.at_level("WARNING", logger="gtsam_sphere.apps.export"):
+        res = export_camera(cam, "opencv-rational", obs, n_samples=3000)
+    # inside: as good as ever
+    assert res.rms_px < 0.02 and res.coverage == 1.0
+    o = res.outside
+    assert o["exceeds"] and o["max_px"] > 1.0
+    assert o["from_deg"] <= o["valid_to_deg"] < o["to_deg"]
+    assert f"do not use this model past {o['valid_to_deg']:.1f} deg" in res.summary()
+    msgs = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert len(msgs) == 1 and "must not be used past" in msgs[0]
+    assert f"{o['valid_to_deg']:.1f} deg" in msgs[0]

@@ -169,6 +169,12 @@ def test_opencv_stereo_reads_back_with_filestorage(tmp_path, model, ext):
         uv = omni_project(np.array(p), rays)
     assert np.max(np.linalg.norm(uv - cam.project(rays), axis=1)) < 0.05
     assert fs.getNode("fit_rms_px_1").real() == pytest.approx(out.fits["cam1"].rms_px)
+    # the error outside the observed region is written next to it
+    o = out.fits["cam1"].outside
+    assert fs.getNode("fit_outside_max_px_1").real() == pytest.approx(o["max_px"], nan_ok=True)
+    assert fs.getNode("fit_inside_to_deg_1").real() == pytest.approx(o["from_deg"])
+    assert fs.getNode("fit_valid_to_deg_1").real() == pytest.approx(o["valid_to_deg"])
+    assert "outside the observed region" in out.summary()
 
 
 def test_cli_rig_exports_and_errors_name_the_option(tmp_path, capsys):

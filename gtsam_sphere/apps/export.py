@@ -54,6 +54,18 @@ sampled on a regular pixel grid (about ``n_samples`` pixels), each pixel
 unprojected to its ray (the camera's ``pixel_hemisphere`` says which half of
 the image sphere a pixel lies on; :mod:`gtsam_sphere.core.rays`).
 
+Inside and outside: the fit error (``rms_px``, ``max_px``) is the error
+inside the observed region. A standard model fitted there can diverge fast
+beyond it, so every export also measures its error outside
+(:func:`outside_statistics`, ``ExportResult.outside``): image pixels whose
+rays lie between the observed region's widest ray and ``OUTSIDE_BAND_DEG``
+(20 deg) beyond it (at most the camera's one-to-one field), per
+``OUTSIDE_STEP_DEG`` (5 deg) band, against the calibration's own pixels.
+When that error exceeds ``OUTSIDE_WARN_PX`` (1 px) the export logs a
+warning naming the incidence past which the model must not be used; the
+summary, the JSON ``fit.outside`` block and the YAML comments state both
+errors.
+
 Files: ``opencv-*`` write JSON (``format: "gtsam-sphere/export-opencv@1"``:
 ``image_size = [width, height]``, ``K``, ``D`` or ``dist``, ``xi`` for
 ``opencv-omnidir``, ``fit``), ``kalibr-*`` write a camchain YAML (``cam0:
@@ -110,6 +122,12 @@ REGIONS: tuple[str, ...] = ("hull", "radius", "image")
 EXPORT_FORMAT = "gtsam-sphere/export-opencv@1"
 #: default incidence limit (deg) of the rational (pinhole) export
 RATIONAL_MAX_INCIDENCE_DEG = 80.0
+#: width (deg) of the incidence band beyond the observed field where an export's error is measured
+OUTSIDE_BAND_DEG = 20.0
+#: width (deg) of the sub-bands of that band reported one by one
+OUTSIDE_STEP_DEG = 5.0
+#: error (px) outside the observed field above which an export warns
+OUTSIDE_WARN_PX = 1.0
 
 # parameter names of each fitted model, in the order of the parameter vector
 _KB_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "k3", "k4")
@@ -695,6 +713,16 @@ class ExportResult:
     observations : dict
         The same residual at the calibration's own observed pixels (``n``,
         ``n_covered``, ``rms_px``, ``max_px``), empty without observations.
+    outside : dict
+        The error outside the observed region (:func:`outside_statistics`):
+        image pixels whose rays lie in the incidence band from the observed
+        field (``from_deg``) up to ``OUTSIDE_BAND_DEG`` beyond it or the
+        camera's one-to-one field (``to_deg``); ``n``, ``rms_px``, ``max_px``
+        (projection), ``unproject_max_deg`` (``opencv-fisheye``:
+        ``cv2.fisheye.undistortPoints``), ``bands`` (per ``OUTSIDE_STEP_DEG``)
+        and ``valid_to_deg`` (the incidence up to which the error stays within
+        ``threshold_px``). Empty when not measured. The error inside the
+        observed region is ``rms_px`` / ``max_px``.
     iterations : int
     converged : bool
         Levenberg-Marquardt outcome.
@@ -717,6 +745,7 @@ class ExportResult:
     max_incidence_deg_region: float
     max_incidence_deg_covered: float
     observations: dict = field(default_factory=dict)
+    outside: dict = field(default_factory=dict)
     iterations: int = 0
     converged: bool = True
     source: str | None = None
@@ -822,9 +851,43 @@ class ExportResult:
                 f"  at the calibration's {o['n']} observed pixels: {o['n_covered']} covered, "
                 f"RMS {o['rms_px']:.4f} px, max {o['max_px']:.4f} px"
             )
+        lines.extend(self.outside_lines())
         if not self.converged:
             lines.append("  the fit did not converge")
         return "\n".join(lines)
+
+    def outside_lines(self) -> list[str]:
+        """Summary lines of the error inside and outside the observed region."""
+        o = self.outside
+        if not o:
+            return []
+        lines = [
+            f"  inside the observed region (up to {self.max_incidence_deg_region:.1f} deg): "
+            f"RMS {self.rms_px:.4f} px, max {self.max_px:.4f} px"
+        ]
+        head = f"  outside it ({o['from_deg']:.1f}-{o['to_deg']:.1f} deg incidence"
+        if not o.get("n"):
+            lines.append(f"{head}): no image pixel there in the model's domain")
+            return lines
+        un = o.get("unproject_max_deg")
+        un = "" if un is None or not math.isfinite(un) else f", unproject max {un:.2f} deg"
+        lines.append(
+            f"{head}, {o['n']} image pixels): RMS {o['rms_px']:.4f} px, "
+            f"max {o['max_px']:.4f} px{un}"
+        )
+        bands = [
+            f"{b['from_deg']:.0f}-{b['to_deg']:.0f} deg {b['max_px']:.3g} px"
+            for b in o.get("bands", [])
+            if b["n"]
+        ]
+        if bands:
+            lines.append("  outside, max per band: " + ", ".join(bands))
+        if o.get("exceeds"):
+            lines.append(
+                f"  do not use this model past {o['valid_to_deg']:.1f} deg incidence: its error "
+                f"exceeds {o['threshold_px']:g} px there"
+            )
+        return lines
 
     def fit_dict(self) -> dict:
         """The fit statistics as a JSON-ready dict."""
@@ -840,6 +903,7 @@ class ExportResult:
             "max_incidence_deg_region": self.max_incidence_deg_region,
             "max_incidence_deg_covered": self.max_incidence_deg_covered,
             "observations": self.observations,
+            "outside": self.outside,
             "iterations": self.iterations,
             "converged": self.converged,
         }
@@ -1069,7 +1133,142 @@ def export_camera(
             observations_incidence_deg,
             max_incidence_deg,
         )
+    result.outside = outside_statistics(camera, result, n_samples=n_samples)
+    if result.outside.get("exceeds"):
+        o = result.outside
+        logger.warning(
+            "%s: error up to %.2f px (above %g px) between %.1f and %.1f deg incidence, outside "
+            "the observed region: the exported model must not be used past %.1f deg",
+            target,
+            o["max_px"],
+            o["threshold_px"],
+            o["from_deg"],
+            o["to_deg"],
+            o["valid_to_deg"],
+        )
     return result
+
+
+def _camera_field_deg(camera) -> float:
+    """The camera's one-to-one field (deg): ``max_alpha_rad`` with a radial mapping, else 180."""
+    try:
+        if getattr(camera, "radial", None) is not None:
+            return float(np.degrees(camera.max_alpha_rad()))
+    except Exception:  # a camera without that method
+        pass
+    return 180.0
+
+
+def outside_statistics(
+    camera,
+    result: ExportResult,
+    band_deg: float = OUTSIDE_BAND_DEG,
+    step_deg: float = OUTSIDE_STEP_DEG,
+    threshold_px: float = OUTSIDE_WARN_PX,
+    step_px: float | None = None,
+    n_samples: int = 20000,
+) -> dict:
+    """The export's error in the band of incidence just beyond the observed region.
+
+    Image pixels (a regular grid) whose rays have an incidence between the
+    observed region's widest ray (``result.max_incidence_deg_region``) and
+    ``band_deg`` beyond it (at most the camera's one-to-one field), inside
+    the exported model's domain: the distance between the model's
+    projection of each ray and the calibrated pixel.
+
+    Parameters
+    ----------
+    camera : SphereCamera
+    result : ExportResult
+    band_deg, step_deg : float
+        Width of the band and of its sub-bands (deg).
+    threshold_px : float
+        Error (px) above which the band ``exceeds``.
+    step_px : float, optional
+        Grid spacing (px); default about ``n_samples`` pixels over the image.
+    n_samples : int
+
+    Returns
+    -------
+    dict
+        ``from_deg``, ``to_deg``, ``n``, ``rms_px``, ``max_px``, ``p95_px``,
+        ``unproject_max_deg`` (``opencv-fisheye`` only, else NaN),
+        ``bands`` (list of ``from_deg, to_deg, n, rms_px, max_px``),
+        ``threshold_px``, ``exceeds`` and ``valid_to_deg`` (the smallest
+        incidence of a pixel whose error exceeds ``threshold_px``, at least
+        ``from_deg``; when none does, the widest incidence measured, or
+        ``from_deg`` when no pixel of the band is in the model's domain).
+        The reference pixels are the calibrated camera's own beyond its
+        observed field (itself an extrapolation there): the numbers say how
+        far the exported model departs from the calibration, not from the
+        true lens.
+    """
+    lo = float(result.max_incidence_deg_region)
+    if not math.isfinite(lo):
+        return {}
+    hi = min(lo + float(band_deg), _camera_field_deg(camera), 180.0)
+    out = {
+        "from_deg": lo,
+        "to_deg": hi,
+        "n": 0,
+        "rms_px": math.nan,
+        "p95_px": math.nan,
+        "max_px": math.nan,
+        "unproject_max_deg": math.nan,
+        "bands": [],
+        "threshold_px": float(threshold_px),
+        "exceeds": False,
+        "valid_to_deg": lo,
+    }
+    if not hi > lo:
+        return out
+    w, h = int(camera.width), int(camera.height)
+    if step_px is None:
+        step_px = math.sqrt(w * h / max(int(n_samples), 16))
+    gu = np.arange(-0.5 + step_px / 2, w - 0.5, step_px)
+    gv = np.arange(-0.5 + step_px / 2, h - 0.5, step_px)
+    uv = np.stack(np.meshgrid(gu, gv), -1).reshape(-1, 2)
+    rays = pixel_rays(camera, uv)
+    ok = np.all(np.isfinite(rays), axis=1)
+    inc = np.full(len(uv), np.nan)
+    inc[ok] = incidence_deg(rays[ok])
+    ok[ok] = (inc[ok] > lo) & (inc[ok] <= hi)
+    ok[ok] = result.in_domain(rays[ok])
+    if not ok.any():
+        return out
+    uv, rays, inc = uv[ok], rays[ok], inc[ok]
+    err = np.linalg.norm(result.project(rays) - uv, axis=1)
+    err = np.where(np.isfinite(err), err, np.inf)  # the model has no pixel: unusable there
+    out["n"] = int(len(err))
+    out["rms_px"] = float(np.sqrt(np.mean(err**2)))
+    out["p95_px"] = float(np.percentile(err, 95))
+    out["max_px"] = float(np.max(err))
+    if result.target == "opencv-fisheye":
+        import cv2
+
+        xy = cv2.fisheye.undistortPoints(
+            np.ascontiguousarray(uv[None], np.float64), result.K, result.D
+        ).reshape(-1, 2)
+        back = np.column_stack([xy, np.ones(len(xy))])
+        back /= np.linalg.norm(back, axis=1, keepdims=True)
+        ang = np.degrees(np.arccos(np.clip(np.sum(back * rays, axis=1), -1.0, 1.0)))
+        ang = np.where(np.isfinite(ang), ang, 180.0)
+        out["unproject_max_deg"] = float(np.max(ang))
+    edges = np.arange(lo, hi, float(step_deg))
+    for a in edges:
+        b = min(a + float(step_deg), hi)
+        m = (inc > a) & (inc <= b)
+        band = {"from_deg": float(a), "to_deg": float(b), "n": int(m.sum())}
+        band["rms_px"] = float(np.sqrt(np.mean(err[m] ** 2))) if m.any() else math.nan
+        band["max_px"] = float(np.max(err[m])) if m.any() else math.nan
+        out["bands"].append(band)
+    bad = err > threshold_px
+    if bad.any():
+        out["exceeds"] = True
+        out["valid_to_deg"] = float(max(lo, np.min(inc[bad])))
+    else:
+        out["valid_to_deg"] = float(np.max(inc))
+    return out
 
 
 def _observation_statistics(camera, result, uv_px, incidence, max_incidence_deg) -> dict:

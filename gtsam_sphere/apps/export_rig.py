@@ -86,9 +86,23 @@ class RigExport:
             lines.append(
                 f"  camera {cid}: {fit.target}, fit RMS {fit.rms_px:.4f} px, "
                 f"max {fit.max_px:.4f} px, covers {100 * fit.coverage:.1f}% of the observed "
-                f"region{at_obs}"
+                f"region{at_obs}{_outside_text(fit)}"
             )
         return "\n".join(lines)
+
+
+def _outside_text(fit: ExportResult) -> str:
+    """``", outside the observed region (a-b deg) max x px[, do not use past y deg]"``."""
+    o = fit.outside
+    if not o:
+        return ""
+    text = f", outside the observed region ({o['from_deg']:.1f}-{o['to_deg']:.1f} deg) "
+    if not o.get("n"):
+        return text + "no image pixel in the model's domain"
+    text += f"max {o['max_px']:.4f} px"
+    if o.get("exceeds"):
+        text += f", do not use past {o['valid_to_deg']:.1f} deg"
+    return text
 
 
 def _check_rig(calib, source: str) -> None:
@@ -262,7 +276,7 @@ def kalibr_camchain(
             f"  cam_overlaps: [{', '.join(str(k) for k in overlaps[cid])}]",
             f"  rostopic: /cam{n}/image_raw",
             f"  # fit RMS {fit.rms_px:.4f} px, max {fit.max_px:.4f} px, "
-            f"coverage {100 * fit.coverage:.1f}%",
+            f"coverage {100 * fit.coverage:.1f}%{_outside_text(fit)}",
         ]
     return RigExport("\n".join(lines) + "\n", fits)
 
@@ -354,6 +368,13 @@ def opencv_stereo(
         fs.write(f"fit_rms_px_{k}", float(fit.rms_px))
         fs.write(f"fit_max_px_{k}", float(fit.max_px))
         fs.write(f"fit_coverage_{k}", float(fit.coverage))
+        if fit.outside:
+            o = fit.outside
+            fs.write(f"fit_inside_to_deg_{k}", float(o["from_deg"]))
+            fs.write(f"fit_outside_to_deg_{k}", float(o["to_deg"]))
+            fs.write(f"fit_outside_rms_px_{k}", float(o["rms_px"]))
+            fs.write(f"fit_outside_max_px_{k}", float(o["max_px"]))
+            fs.write(f"fit_valid_to_deg_{k}", float(o["valid_to_deg"]))
     fs.write("R", R)
     fs.write("T", T.reshape(3, 1))
     text = fs.releaseAndGetString()
