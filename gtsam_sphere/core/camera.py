@@ -192,6 +192,17 @@ def radial_terms(n: int) -> tuple[str, ...]:
     return RADIAL_TERMS[:n]
 
 
+def _warped_angle(alpha: np.ndarray, warp: float | None):
+    """``(phi, k, dphi/dalpha)`` of the warp: ``phi = atan2(k sin(alpha), cos(alpha))``,
+    ``k = exp(warp)``; ``(alpha, 1, 1)`` without a warp (``warp`` None)."""
+    a = np.asarray(alpha, float)
+    if warp is None:
+        return a, 1.0, 1.0
+    k = math.exp(warp)
+    sin_a, cos_a = np.sin(a), np.cos(a)
+    return np.arctan2(k * sin_a, cos_a), k, k / (cos_a**2 + (k * sin_a) ** 2)
+
+
 def radial_warp(alpha: np.ndarray, w: float) -> np.ndarray:
     """Warped incidence ``beta(alpha) = atan2(k sin(alpha), cos(alpha)) / k``, ``k = exp(w)``.
 
@@ -211,9 +222,8 @@ def radial_warp(alpha: np.ndarray, w: float) -> np.ndarray:
     -------
     beta : ndarray, shape (N,)
     """
-    k = math.exp(w)
-    a = np.asarray(alpha, float)
-    return np.arctan2(k * np.sin(a), np.cos(a)) / k
+    phi, k, _ = _warped_angle(alpha, w)
+    return phi / k
 
 
 def radial_g(
@@ -240,13 +250,7 @@ def radial_g(
         ``w`` (None: no warp). A shape constant chosen by the initialisation, not
         estimated: a free ``w`` is nearly redundant with the polynomial.
     """
-    if warp is None:
-        x = np.array(alpha, float, copy=True)
-    else:
-        k = math.exp(warp)
-        a = np.asarray(alpha, float)
-        sin_a, cos_a = np.sin(a), np.cos(a)
-        x = np.arctan2(k * sin_a, cos_a)
+    x, k, dx_da = _warped_angle(alpha, warp)
     t = x / ALPHA0_RAD
     h = np.array(x, float, copy=True)
     G = len(coeffs)
@@ -254,19 +258,13 @@ def radial_g(
     for i in range(G):
         powers[:, i] = t ** (2 * i + 3)
     h += ALPHA0_RAD * powers @ np.asarray(coeffs, float)
-    if warp is None:
-        g = h
-    else:
-        g = h / k
+    g = h / k
     if not derivative:
         return g
     dh = np.ones_like(h)
     for i in range(G):
         dh += (2 * i + 3) * coeffs[i] * t ** (2 * i + 2)
-    if warp is None:
-        return g, dh, ALPHA0_RAD * powers
-    dphi_da = k / (cos_a**2 + (k * sin_a) ** 2)
-    return g, dh * dphi_da / k, ALPHA0_RAD * powers / k
+    return g, dh * dx_da / k, ALPHA0_RAD * powers / k
 
 
 def radial_g_horner(
@@ -278,13 +276,7 @@ def radial_g_horner(
     without the coefficient Jacobian; used by the fast paths of
     :meth:`SphereCamera.project` and :meth:`SphereCamera.unproject`.
     """
-    a = np.asarray(alpha, float)
-    if warp is None:
-        x = a
-    else:
-        k = math.exp(warp)
-        sin_a, cos_a = np.sin(a), np.cos(a)
-        x = np.arctan2(k * sin_a, cos_a)
+    x, k, dx_da = _warped_angle(alpha, warp)
     c = np.asarray(coeffs, float)
     while len(c) and c[-1] == 0.0:
         c = c[:-1]
@@ -298,7 +290,7 @@ def radial_g_horner(
         h = x + ALPHA0_RAD * t * t2 * poly
     else:
         h = x.copy()
-    g = h if warp is None else h / k
+    g = h / k
     if not derivative:
         return g
     if len(c):
@@ -311,9 +303,7 @@ def radial_g_horner(
         dh = 1.0 + t2 * dpoly
     else:
         dh = np.ones_like(t)
-    if warp is None:
-        return g, dh
-    return g, dh * (k / (cos_a**2 + (k * sin_a) ** 2)) / k
+    return g, dh * dx_da / k
 
 
 def ideal_projection(
