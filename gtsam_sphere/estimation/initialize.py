@@ -117,7 +117,7 @@ def _rho(mapping: str, alpha: np.ndarray) -> np.ndarray:
         elif mapping == "equisolid":
             r = 2.0 * np.sin(0.5 * a_in)
         elif mapping == "fov":
-            r = np.arctan2(_FOV_K * np.sin(a_in), np.cos(a_in)) / _FOV_K
+            r = radial_warp(a_in, _WARP_W["fov"])  # the calibration's warp of log(_FOV_K)
         else:
             r = np.sin(a_in)
     return np.where(inside, r, np.nan)
