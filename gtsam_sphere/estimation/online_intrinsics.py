@@ -310,8 +310,7 @@ class IntrinsicsTracker:
                     graph.add(gtsam.PriorFactorPoint3(k, p, prior))
         graph.add(self.online.observation_factor(uv_px, xk, ik, keys, points_xyz))
         self.isam.update(graph, values)
-        # the whole estimate: GTSAM 4.3a1 (Python 3.10) has no keyed calculateEstimate
-        theta = np.asarray(self.isam.calculateEstimate().atVector(ik), float)
+        theta = np.asarray(_estimate_of(self.isam, ik).atVector(ik), float)
         self._last_theta = theta
         self.estimates.append(theta)
         self.t += 1
@@ -325,4 +324,13 @@ class IntrinsicsTracker:
     def pose(self, t: int) -> gtsam.Pose3:
         """Current estimate of frame ``t``'s ``world_from_cam``."""
         k = camera_pose_key(t)
-        return self.isam.calculateEstimate().atPose3(k)
+        return _estimate_of(self.isam, k).atPose3(k)
+
+
+def _estimate_of(isam: gtsam.ISAM2, key: int) -> gtsam.Values:
+    """iSAM2's estimate of ``key`` alone (constant per frame), or the whole estimate where
+    GTSAM lacks the keyed call (4.3a1, the Python 3.10 build)."""
+    try:
+        return isam.calculateEstimate([key])
+    except TypeError:
+        return isam.calculateEstimate()
