@@ -46,3 +46,32 @@ def test_real_distortion_keeps_its_terms():
     calib = calibrate(parse_dataset(sim.dataset), CalibrationOptions(covariance=False))
     kept = calib.statistics["intrinsics_names"]
     assert {"g3", "g5"} <= set(kept), kept
+
+
+@pytest.mark.parametrize(
+    ("true_w", "mapping"),
+    [(0.0, "equidistant"), (0.62, "fov-omega-1.5"), (-0.7, "warp"), (1.2, "warp")],
+)
+def test_warp_score_picks_the_lens_own_warp(true_w, mapping):
+    """The one-term radial fit is best at the mapping's own warp, on noisy radii."""
+    from gtsam_sphere.core.camera import radial_warp
+    from gtsam_sphere.estimation.calibrate import WARP_GRID, _warp_scores
+
+    rng = np.random.default_rng(3)
+    alpha = rng.uniform(0.01, np.radians(85.0), 3000)
+    f_px = 700.0
+    if mapping == "fov-omega-1.5":  # Devernay-Faugeras: r = atan(2 tan(a) tan(w/2)) / w
+        omega = 1.5
+        r = f_px * np.arctan(2.0 * np.tan(alpha) * np.tan(omega / 2.0)) / omega
+    elif true_w == 0.0:
+        r = f_px * alpha
+    else:
+        r = f_px * radial_warp(alpha, true_w)
+    r = r + rng.normal(0.0, 0.3, r.shape)
+    warps = list(WARP_GRID)
+    scores = _warp_scores(r, alpha, warps)
+    best = warps[int(np.argmin(scores))]
+    assert abs(best - true_w) <= 0.05 + 1e-9, (best, true_w)
+    # the noise (0.3 px) plus what one term leaves of the grid step's misfit (0.05 in w)
+    assert scores.min() < 0.6
+    assert scores.min() < 0.1 * scores.max()
