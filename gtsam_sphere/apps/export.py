@@ -41,16 +41,17 @@ Targets (``TARGETS``)
 ``kalibr-omni``
     Kalibr ``omni`` + ``radtan`` (``intrinsics = [xi, fu, fv, pu, pv]``): the
     same model as ``opencv-omnidir``, written as a camchain YAML.
+``kalibr-eucm``
+    Kalibr ``eucm`` + ``none`` (basalt's ``eucm``), the extended unified model
+    (Khomutenko et al. 2016) ``intrinsics = [alpha, beta, fu, fv, pu, pv]``: ``d =
+    sqrt(beta (x^2 + y^2) + z^2)``, ``u = fu x / (alpha d + (1 - alpha) z) + pu``;
+    reaches past 90 deg.
 
 Fits the format exports use (``FORMAT_FITS``, written by
 :mod:`gtsam_sphere.apps.export_formats` as ``--to ros``, ``mrcal``, ``basalt``):
 
 ``opencv-plumb-bob``
     ``opencv-rational`` with ``k4 = k5 = k6 = 0`` (ROS ``plumb_bob``).
-``basalt-eucm``
-    The extended unified model (Khomutenko et al. 2016) ``[alpha, beta, fx, fy,
-    cx, cy]``: ``d = sqrt(beta (x^2 + y^2) + z^2)``, ``u = fx x / (alpha d + (1 -
-    alpha) z) + cx``; reaches past 90 deg.
 ``mrcal-splined``
     mrcal's ``LENSMODEL_SPLINED_STEREOGRAPHIC_order=3`` (:mod:`gtsam_sphere.apps.splined`):
     the intrinsics core fixed from the principal point and the focal length near the
@@ -125,10 +126,11 @@ TARGETS: tuple[str, ...] = (
     "kalibr-equi",
     "kalibr-ds",
     "kalibr-omni",
+    "kalibr-eucm",
 )
 #: fits the format exports use (:mod:`gtsam_sphere.apps.export_formats`: ROS ``plumb_bob``,
-#: basalt ``eucm``, mrcal's splined model), not written on their own
-FORMAT_FITS: tuple[str, ...] = ("opencv-plumb-bob", "basalt-eucm", "mrcal-splined")
+#: mrcal's splined model), not written on their own
+FORMAT_FITS: tuple[str, ...] = ("opencv-plumb-bob", "mrcal-splined")
 #: model family fitted for each target
 TARGET_FAMILY: dict[str, str] = {
     "opencv-fisheye": "kannala-brandt",
@@ -138,7 +140,7 @@ TARGET_FAMILY: dict[str, str] = {
     "opencv-omnidir": "omni",
     "kalibr-omni": "omni",
     "opencv-plumb-bob": "plumb-bob",
-    "basalt-eucm": "eucm",
+    "kalibr-eucm": "eucm",
     "mrcal-splined": "splined-stereographic",
 }
 REGIONS: tuple[str, ...] = ("hull", "radius", "image")
@@ -1733,9 +1735,9 @@ def add_cli_arguments(parser: argparse.ArgumentParser) -> None:
         action="append",
         default=None,
         metavar="[ID=]MODEL",
-        help="--to kalibr: auto, pinhole-equi, omni-radtan or ds-none for every camera, or "
-        "ID=MODEL for one (repeat); default auto: per camera the model covering most of the "
-        "observed region, then the smallest fit residual",
+        help="--to kalibr: auto, pinhole-equi, omni-radtan, ds-none or eucm-none for every "
+        "camera, or ID=MODEL for one (repeat); default auto: per camera the model (of the "
+        "first three) covering most of the observed region, then the smallest fit residual",
     )
     parser.add_argument(
         "--ros-model",

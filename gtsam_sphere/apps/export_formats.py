@@ -101,7 +101,7 @@ ROS_MODELS: dict[str, str] = {
 #: mrcal model choice -> single-camera export target
 MRCAL_MODELS: dict[str, str] = {"opencv8": "opencv-rational", "splined": "mrcal-splined"}
 #: basalt ``camera_type`` -> single-camera export target
-BASALT_MODELS: dict[str, str] = {"kb4": "opencv-fisheye", "ds": "kalibr-ds", "eucm": "basalt-eucm"}
+BASALT_MODELS: dict[str, str] = {"kb4": "opencv-fisheye", "ds": "kalibr-ds", "eucm": "kalibr-eucm"}
 #: ``--mrcal-model auto`` takes OPENCV8 only when the observed field is narrower than this (deg)
 MRCAL_OPENCV8_MAX_DEG = 75.0
 #: ... and its fit RMS is at most this (px)

@@ -7,9 +7,9 @@ An mrcal file (``--with FILE.cameramodel``, read by
 as a Kalibr camera; its ``extrinsics`` are not used.
 
 ``gtsam-sphere compare CALIB.json --with camchain.yaml [--camera cam0]`` reads the
-Kalibr camera (models ``pinhole-equi``, ``omni-radtan``, ``ds-none``; Kalibr's camchain
-keys ``camera_model``, ``intrinsics``, ``distortion_model``, ``distortion_coeffs``,
-``resolution``), samples the region the calibration observed on a pixel grid
+Kalibr camera (models ``pinhole-equi``, ``omni-radtan``, ``ds-none``, ``eucm-none``;
+Kalibr's camchain keys ``camera_model``, ``intrinsics``, ``distortion_model``,
+``distortion_coeffs``, ``resolution``), samples the region the calibration observed on a pixel grid
 (:func:`gtsam_sphere.apps.export.sample_region`), takes our ray of every sample pixel and
 projects it with Kalibr's model: the distance between Kalibr's pixel and the sample
 pixel is the projection difference of the two calibrations for that ray (px; both in
@@ -33,7 +33,16 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..core.errors import DatasetError, OptionsError
-from .export import ds_project, ds_valid, kb_project, omni_project, omni_valid, sample_region
+from .export import (
+    ds_project,
+    ds_valid,
+    eucm_project,
+    eucm_valid,
+    kb_project,
+    omni_project,
+    omni_valid,
+    sample_region,
+)
 
 __all__ = [
     "KalibrCamera",
@@ -47,6 +56,7 @@ MODELS = {
     ("pinhole", "equidistant"): "pinhole-equi",
     ("omni", "radtan"): "omni-radtan",
     ("ds", "none"): "ds-none",
+    ("eucm", "none"): "eucm-none",
 }
 BANDS_DEG = (0.0, 30.0, 60.0, 90.0, 120.0, 180.0)
 
@@ -60,7 +70,7 @@ class KalibrCamera:
     camera_id : str
         Its key in the file (``cam0``, ...).
     model : str
-        ``pinhole-equi``, ``omni-radtan`` or ``ds-none``.
+        ``pinhole-equi``, ``omni-radtan``, ``ds-none`` or ``eucm-none``.
     intrinsics : ndarray
         Kalibr's ``intrinsics``: ``[fu, fv, pu, pv]`` (pinhole), ``[xi, fu, fv, pu, pv]``
         (omni), ``[xi, alpha, fu, fv, pu, pv]`` (ds); pixels and dimensionless.
@@ -91,6 +101,8 @@ class KalibrCamera:
         elif self.model == "omni-radtan":
             params = np.concatenate([i, d])
             uv, ok = omni_project(params, rays), omni_valid(params, rays)
+        elif self.model == "eucm-none":
+            uv, ok = eucm_project(i, rays), eucm_valid(i, rays)
         else:
             uv, ok = ds_project(i, rays), ds_valid(i, rays)
         uv = np.where(ok[:, None], uv, np.nan)
@@ -176,7 +188,7 @@ def read_kalibr_camchain(path: str) -> dict[str, KalibrCamera]:
     if not blocks:
         raise DatasetError(f"{path}: no camera block (expected 'cam0:' ...)")
     out = {}
-    sizes = {"pinhole-equi": (4, 4), "omni-radtan": (5, 4), "ds-none": (6, 0)}
+    sizes = {"pinhole-equi": (4, 4), "omni-radtan": (5, 4), "ds-none": (6, 0), "eucm-none": (6, 0)}
     for cid, b in blocks.items():
         for k in ("camera_model", "intrinsics", "distortion_model", "resolution"):
             if k not in b:

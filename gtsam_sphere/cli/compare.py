@@ -23,7 +23,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         dest="with_",
         metavar="CAMCHAIN.yaml|MODEL.cameramodel",
         default=None,
-        help="compare CALIB.json with a Kalibr camchain (pinhole-equi, omni-radtan, ds-none) "
+        help="compare CALIB.json with a Kalibr camchain (pinhole-equi, omni-radtan, ds-none, "
+        "eucm-none) "
         "or an mrcal .cameramodel: projection differences over the observed field",
     )
     kalibr_compare.add_cli_arguments(p)
