@@ -116,6 +116,18 @@ def test_ros_auto_picks_the_model_covering_the_field(calib75, wide):
         ros_camera_infos(calib75, "fov")
 
 
+def test_ros_rig_one_file_per_camera(tmp_path, capsys):
+    path = small_rig(2).save(tmp_path / "rig.json")
+    out = tmp_path / "camera_info.yaml"
+    args = ["export", str(path), "--to", "ros", "--samples", "1500", "-o", str(out)]
+    assert main([*args, "--ros-model", "equidistant"]) in (0, 1)  # > 180 deg: partly covered
+    assert "camera cam1: equidistant" in capsys.readouterr().out
+    for cid in ("cam0", "cam1"):
+        doc = yaml.safe_load((tmp_path / f"camera_info-{cid}.yaml").read_text())
+        assert set(doc) == ROS_KEYS and doc["camera_name"] == cid
+    assert not out.exists()
+
+
 # --------------------------------------------------------------------------- splined model
 
 

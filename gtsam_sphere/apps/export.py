@@ -1751,7 +1751,8 @@ def add_cli_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         choices=("auto", "opencv8", "splined"),
         help="--to mrcal: LENSMODEL_OPENCV8 or LENSMODEL_SPLINED_STEREOGRAPHIC (default auto: "
-        "OPENCV8 when the observed field is below 75 deg and it fits within 0.1 px RMS)",
+        "OPENCV8 when the observed field is below 75 deg and it fits within 0.1 px everywhere "
+        "there, else the splined model)",
     )
     parser.add_argument(
         "--basalt-model",

@@ -28,7 +28,7 @@ and written in the file where the format has comments).
     ``valid_intrinsics_region`` (the convex hull of the observed pixels, closed).
     Models (:data:`MRCAL_MODELS`): ``LENSMODEL_OPENCV8`` (the ``opencv-rational`` fit)
     where the observed region's widest ray is below ``MRCAL_OPENCV8_MAX_DEG`` (a lens
-    below ~150 deg) and the fit's RMS is at most ``MRCAL_OPENCV8_MAX_RMS_PX``, otherwise
+    below ~150 deg) and its largest fit error is at most ``MRCAL_OPENCV8_MAX_PX``, otherwise
     ``LENSMODEL_SPLINED_STEREOGRAPHIC_order=3_Nx=.._Ny=.._fov_x_deg=..`` fitted to the
     calibration (:mod:`gtsam_sphere.apps.splined`). A rig's cameras get one file each,
     ``extrinsics`` relative to camera 0 (the rig frame) in metres.
@@ -104,8 +104,8 @@ MRCAL_MODELS: dict[str, str] = {"opencv8": "opencv-rational", "splined": "mrcal-
 BASALT_MODELS: dict[str, str] = {"kb4": "opencv-fisheye", "ds": "kalibr-ds", "eucm": "kalibr-eucm"}
 #: ``--mrcal-model auto`` takes OPENCV8 only when the observed field is narrower than this (deg)
 MRCAL_OPENCV8_MAX_DEG = 75.0
-#: ... and its fit RMS is at most this (px)
-MRCAL_OPENCV8_MAX_RMS_PX = 0.1
+#: ... and its largest fit error over the observed region is at most this (px)
+MRCAL_OPENCV8_MAX_PX = 0.1
 
 
 @dataclass
@@ -370,7 +370,7 @@ def mrcal_cameramodels(
             if model == "auto" and not (
                 fit.max_incidence_deg_region < MRCAL_OPENCV8_MAX_DEG
                 and fit.coverage >= 0.999
-                and fit.rms_px <= MRCAL_OPENCV8_MAX_RMS_PX
+                and fit.max_px <= MRCAL_OPENCV8_MAX_PX
             ):
                 fit = None
             name = "opencv8"
