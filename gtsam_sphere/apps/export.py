@@ -1728,7 +1728,8 @@ def add_cli_arguments(parser: argparse.ArgumentParser) -> None:
         "--camera",
         default=None,
         metavar="ID",
-        help="rig calibration: the camera a single-camera target (opencv-*, kalibr-*) exports",
+        help="rig calibration: the camera a single-camera target (opencv-*, kalibr-*) exports; "
+        "with ros, mrcal, basalt only that camera (default every camera)",
     )
     parser.add_argument(
         "--kalibr-model",
