@@ -175,6 +175,8 @@ _FAMILY_NAMES = {
 SPLINE_NX = 16
 #: weight (px of residual per px of second difference) of the spline's smoothness prior
 SPLINE_SMOOTHING = 0.01
+#: weight of the image pixels beyond the observed field in the spline fit (the observed region's: 1)
+SPLINE_OUTSIDE_WEIGHT = 0.1
 #: at most this many region samples enter the (dense) spline fit
 SPLINE_MAX_FIT_SAMPLES = 6000
 
@@ -862,8 +864,10 @@ def _fit_splined(
     stereographic focal length near the axis (the median of ``|uv - pp| / |u|`` over the
     innermost fifth of the samples); then the control points are fitted (the problem is
     linear in them) with a smoothness prior (``SPLINE_SMOOTHING`` times ``f`` times their
-    second differences, as pixel residuals) that fills the control points the region does
-    not reach by continuing its correction smoothly. Returns ``(config, params, fit)``.
+    second differences, as pixel residuals). Image pixels whose rays lie beyond the
+    observed region's widest ray enter with weight ``SPLINE_OUTSIDE_WEIGHT``: there the
+    spline follows the calibration's own extrapolation (as the other exports are measured
+    against it) instead of a blind continuation. Returns ``(config, params, fit)``.
     """
     w, h = int(camera.width), int(camera.height)
     step = max(2.0, math.sqrt(w * h / 20000.0))
@@ -882,12 +886,20 @@ def _fit_splined(
     image_rays = pixel_rays(camera, edge)
     u_all = stereographic_u(image_rays[np.all(np.isfinite(image_rays), axis=1)])
     config = choose_config(np.concatenate([u_all, stereographic_u(rays)]), nx or SPLINE_NX)
+    # the image beyond the observed field, weighted down
+    grid, grid_rays = edge[: len(edge) - len(uv)], image_rays[: len(edge) - len(uv)]
+    beyond = np.all(np.isfinite(grid_rays), axis=1)
+    beyond[beyond] = incidence_deg(grid_rays[beyond]) > float(np.max(incidence_deg(rays)))
     if len(rays) > SPLINE_MAX_FIT_SAMPLES:
         sub = np.unique(np.linspace(0, len(rays) - 1, SPLINE_MAX_FIT_SAMPLES).astype(int))
         rays, uv = rays[sub], uv[sub]
+    n_in = len(rays)
+    rays = np.concatenate([rays, grid_rays[beyond]])
+    uv = np.concatenate([uv, grid[beyond]])
+    row_weight = np.concatenate([np.ones(n_in), np.full(int(beyond.sum()), SPLINE_OUTSIDE_WEIGHT)])
     u = stereographic_u(rays)
-    ru = np.linalg.norm(u, axis=1)
-    rp = np.linalg.norm(uv - pp, axis=1)
+    ru = np.linalg.norm(u[:n_in], axis=1)
+    rp = np.linalg.norm(uv[:n_in] - pp, axis=1)
     inner = ru <= np.percentile(ru, 20)
     inner &= ru > 1e-6
     f = (
@@ -901,8 +913,8 @@ def _fit_splined(
     B = np.zeros((n, m))
     np.put_along_axis(B, index, weight, axis=1)  # the indices of a row are distinct
     L = _smoothing_operator(config) * (SPLINE_SMOOTHING * f)
-    target = uv - pp - f * u  # f * du must equal this
-    Jx = np.vstack([f * B, L])  # the same design for dux and duy (fx = fy)
+    target = (uv - pp - f * u) * row_weight[:, None]  # f * du must equal this
+    Jx = np.vstack([f * B * row_weight[:, None], L])  # the same design for dux and duy (fx = fy)
     zeros = np.zeros(len(L))
 
     def fun(c):
