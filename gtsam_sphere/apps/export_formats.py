@@ -201,7 +201,22 @@ def _seq(values) -> str:
 
 
 def ros_yaml(fit: ExportResult, distortion_model: str, camera_name: str) -> str:
-    """The ``sensor_msgs/CameraInfo`` YAML of one fitted camera (see the module docstring)."""
+    """The ``sensor_msgs/CameraInfo`` YAML of one fitted camera (see the module docstring).
+
+    Parameters
+    ----------
+    fit : ExportResult
+        ``opencv-fisheye``, ``opencv-plumb-bob`` or ``opencv-rational`` (``K`` px, ``D``).
+    distortion_model : str
+        ``equidistant``, ``plumb_bob`` or ``rational_polynomial`` (matching ``fit``).
+    camera_name : str
+
+    Returns
+    -------
+    str
+        The YAML, the fit's summary (error inside and outside the observed region) in
+        leading comments.
+    """
     K = fit.K
     P = np.hstack([K, np.zeros((3, 1))])
     D = fit.D
@@ -525,7 +540,19 @@ def _quaternion(R: np.ndarray) -> tuple[float, float, float, float]:
 
 
 def basalt_intrinsics(fit: ExportResult, camera_type: str) -> dict:
-    """basalt's ``{"camera_type", "intrinsics"}`` entry of one fitted camera."""
+    """basalt's ``{"camera_type", "intrinsics"}`` entry of one fitted camera.
+
+    Parameters
+    ----------
+    fit : ExportResult
+        ``opencv-fisheye`` (``kb4``), ``kalibr-ds`` (``ds``) or ``kalibr-eucm`` (``eucm``).
+    camera_type : {"kb4", "ds", "eucm"}
+
+    Returns
+    -------
+    dict
+        ``fx, fy, cx, cy`` (px) and ``k1..k4`` / ``xi, alpha`` / ``alpha, beta``.
+    """
     p = fit.params
     core = {k: float(p[k]) for k in ("fx", "fy", "cx", "cy")}
     if camera_type == "kb4":
@@ -538,8 +565,20 @@ def basalt_intrinsics(fit: ExportResult, camera_type: str) -> dict:
 
 
 def basalt_project(entry: dict, rays: np.ndarray) -> np.ndarray:
-    """Project rays (N, 3) with one basalt ``intrinsics`` entry (kb4, ds, eucm); NaN where
-    the model has no pixel (kb4: ``z <= 0``, as the export fitted it)."""
+    """Project rays with one basalt ``intrinsics`` entry, by that model's formulas.
+
+    Parameters
+    ----------
+    entry : dict
+        ``{"camera_type": "kb4" | "ds" | "eucm", "intrinsics": {...}}``.
+    rays : ndarray, shape (N, 3)
+        Camera frame (x right, y down, z forward).
+
+    Returns
+    -------
+    uv_px : ndarray, shape (N, 2)
+        NaN where the model has no pixel (kb4: ``z <= 0``, as the export fitted it).
+    """
     i = entry["intrinsics"]
     kind = entry["camera_type"]
     rays = np.asarray(rays, float).reshape(-1, 3)
