@@ -10,7 +10,7 @@ import pytest
 import yaml
 
 from gtsam_sphere import SphereCamera
-from gtsam_sphere.apps.export import ds_project, kb_project, omni_project, pixel_rays
+from gtsam_sphere.apps.export import ds_project, eucm_project, kb_project, omni_project, pixel_rays
 from gtsam_sphere.apps.export_rig import (
     camera_overlaps,
     kalibr_camchain,
@@ -85,10 +85,12 @@ def _fitted_project(entry: dict, rays: np.ndarray) -> np.ndarray:
         return kb_project(np.array(intr + dist), rays)
     if entry["camera_model"] == "omni":
         return omni_project(np.array(intr + dist), rays)
+    if entry["camera_model"] == "eucm":
+        return eucm_project(np.array(intr), rays)
     return ds_project(np.array(intr), rays)
 
 
-@pytest.mark.parametrize("model", ["auto", "pinhole-equi", "omni-radtan", "ds-none"])
+@pytest.mark.parametrize("model", ["auto", "pinhole-equi", "omni-radtan", "ds-none", "eucm-none"])
 def test_kalibr_camchain_round_trip(model):
     calib = small_rig(3)
     out = kalibr_camchain(calib, model=model, n_samples=3000, source="rig.json")
@@ -128,6 +130,7 @@ def test_kalibr_camchain_round_trip(model):
                     "pinhole-equi": "pinhole",
                     "omni-radtan": "omni",
                     "ds-none": "ds",
+                    "eucm-none": "eucm",
                 }[model]
             )
 

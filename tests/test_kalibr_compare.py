@@ -25,7 +25,12 @@ def obs75(cam):
 
 @pytest.mark.parametrize(
     "target, model",
-    [("kalibr-equi", "pinhole-equi"), ("kalibr-ds", "ds-none"), ("kalibr-omni", "omni-radtan")],
+    [
+        ("kalibr-equi", "pinhole-equi"),
+        ("kalibr-ds", "ds-none"),
+        ("kalibr-omni", "omni-radtan"),
+        ("kalibr-eucm", "eucm-none"),
+    ],
 )
 def test_export_then_compare_gives_the_fit_error(cam, obs75, tmp_path, target, model):
     result = export_camera(cam, target, obs75, n_samples=3000)

@@ -41,6 +41,23 @@ Targets (``TARGETS``)
 ``kalibr-omni``
     Kalibr ``omni`` + ``radtan`` (``intrinsics = [xi, fu, fv, pu, pv]``): the
     same model as ``opencv-omnidir``, written as a camchain YAML.
+``kalibr-eucm``
+    Kalibr ``eucm`` + ``none`` (basalt's ``eucm``), the extended unified model
+    (Khomutenko et al. 2016) ``intrinsics = [alpha, beta, fu, fv, pu, pv]``: ``d =
+    sqrt(beta (x^2 + y^2) + z^2)``, ``u = fu x / (alpha d + (1 - alpha) z) + pu``;
+    reaches past 90 deg.
+
+Fits the format exports use (``FORMAT_FITS``, written by
+:mod:`gtsam_sphere.apps.export_formats` as ``--to ros``, ``mrcal``, ``basalt``):
+
+``opencv-plumb-bob``
+    ``opencv-rational`` with ``k4 = k5 = k6 = 0`` (ROS ``plumb_bob``).
+``mrcal-splined``
+    mrcal's ``LENSMODEL_SPLINED_STEREOGRAPHIC_order=3`` (:mod:`gtsam_sphere.apps.splined`):
+    the intrinsics core fixed from the principal point and the focal length near the
+    axis, the spline's control points fitted with a smoothness prior
+    (``SPLINE_SMOOTHING``), ``SPLINE_NX`` control points across a valid region
+    spanning the whole image.
 
 Every target uses OpenCV's pixel convention (``(0, 0)`` is the centre of
 the top-left pixel), as this package does; no half-pixel shift is applied.
@@ -98,6 +115,7 @@ from ..core.rays import RayGrid as RayGrid
 from ..core.rays import pixel_rays as pixel_rays
 from ..core.rays import project_rays as project_rays
 from ..io.dataset import DatasetError, write_bytes_atomic, write_json_atomic
+from .splined import SplineConfig, choose_config, spline_weights, splined_project, stereographic_u
 
 logger = logging.getLogger(__name__)
 
@@ -108,7 +126,11 @@ TARGETS: tuple[str, ...] = (
     "kalibr-equi",
     "kalibr-ds",
     "kalibr-omni",
+    "kalibr-eucm",
 )
+#: fits the format exports use (:mod:`gtsam_sphere.apps.export_formats`: ROS ``plumb_bob``,
+#: mrcal's splined model), not written on their own
+FORMAT_FITS: tuple[str, ...] = ("opencv-plumb-bob", "mrcal-splined")
 #: model family fitted for each target
 TARGET_FAMILY: dict[str, str] = {
     "opencv-fisheye": "kannala-brandt",
@@ -117,6 +139,9 @@ TARGET_FAMILY: dict[str, str] = {
     "kalibr-ds": "double-sphere",
     "opencv-omnidir": "omni",
     "kalibr-omni": "omni",
+    "opencv-plumb-bob": "plumb-bob",
+    "kalibr-eucm": "eucm",
+    "mrcal-splined": "splined-stereographic",
 }
 REGIONS: tuple[str, ...] = ("hull", "radius", "image")
 EXPORT_FORMAT = "gtsam-sphere/export-opencv@1"
@@ -134,12 +159,26 @@ _KB_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "k3", "k4")
 _RATIONAL_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
 _DS_NAMES = ("xi", "alpha", "fx", "fy", "cx", "cy")
 _OMNI_NAMES = ("xi", "fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2")
+_PLUMB_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
+_EUCM_NAMES = ("alpha", "beta", "fx", "fy", "cx", "cy")
+_CORE_NAMES = ("fx", "fy", "cx", "cy")
 _FAMILY_NAMES = {
     "kannala-brandt": _KB_NAMES,
     "rational": _RATIONAL_NAMES,
     "double-sphere": _DS_NAMES,
     "omni": _OMNI_NAMES,
+    "plumb-bob": _PLUMB_NAMES,
+    "eucm": _EUCM_NAMES,
+    "splined-stereographic": _CORE_NAMES,
 }
+#: default control points across of the ``mrcal-splined`` fit
+SPLINE_NX = 16
+#: weight (px of residual per px of second difference) of the spline's smoothness prior
+SPLINE_SMOOTHING = 0.01
+#: weight of the image pixels beyond the observed field in the spline fit (the observed region's: 1)
+SPLINE_OUTSIDE_WEIGHT = 0.1
+#: at most this many region samples enter the (dense) spline fit
+SPLINE_MAX_FIT_SAMPLES = 6000
 
 
 # --------------------------------------------------------------------------- observed region
@@ -503,6 +542,100 @@ def omni_valid(params: np.ndarray, rays: np.ndarray) -> np.ndarray:
         return (rays[:, 2] / d > -limit + 1e-9) & (d > 0)
 
 
+def plumb_bob_project(params: np.ndarray, rays: np.ndarray, jacobians: bool = False):
+    """OpenCV's five-coefficient pinhole model (ROS ``plumb_bob``) of rays with ``z > 0``.
+
+    :func:`rational_project` with ``k4 = k5 = k6 = 0``.
+
+    Parameters
+    ----------
+    params : ndarray, shape (9,)
+        ``fx, fy, cx, cy`` (px), then ``k1, k2, p1, p2, k3`` (OpenCV's order).
+    rays : ndarray, shape (N, 3)
+        Camera frame; meaningful for ``z > 0``.
+    jacobians : bool
+        Also return ``d uv / d params``, shape (N, 2, 9).
+
+    Returns
+    -------
+    uv_px : ndarray, shape (N, 2)
+    """
+    full = np.concatenate([np.asarray(params, float)[:9], np.zeros(3)])
+    out = rational_project(full, rays, jacobians)
+    if not jacobians:
+        return out
+    uv, J = out
+    return uv, J[:, :, :9]
+
+
+def eucm_project(params: np.ndarray, rays: np.ndarray, jacobians: bool = False):
+    """Extended unified camera model (Khomutenko et al. 2016; basalt ``eucm``).
+
+    ``d = sqrt(beta (x^2 + y^2) + z^2)``, ``den = alpha d + (1 - alpha) z``, ``u = fx x /
+    den + cx``, ``v = fy y / den + cy``.
+
+    Parameters
+    ----------
+    params : ndarray, shape (6,)
+        ``alpha, beta`` (dimensionless), ``fx, fy, cx, cy`` (px).
+    rays : ndarray, shape (N, 3)
+        Camera frame (x right, y down, z forward), any direction; see
+        :func:`eucm_valid` for where the model is defined.
+    jacobians : bool
+        Also return ``d uv / d params``, shape (N, 2, 6).
+
+    Returns
+    -------
+    uv_px : ndarray, shape (N, 2)
+    """
+    alpha, beta, fx, fy, cx, cy = (float(v) for v in params)
+    x, y, z = rays[:, 0], rays[:, 1], rays[:, 2]
+    r2 = x * x + y * y
+    with np.errstate(invalid="ignore", divide="ignore"):
+        d = np.sqrt(beta * r2 + z * z)
+        den = alpha * d + (1 - alpha) * z
+        mx = x / den
+        my = y / den
+    uv = np.column_stack([fx * mx + cx, fy * my + cy])
+    if not jacobians:
+        return uv
+    J = np.zeros((len(rays), 2, 6))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        dden_dalpha = d - z
+        dden_dbeta = alpha * r2 / (2 * d)
+        J[:, 0, 0] = -fx * mx / den * dden_dalpha
+        J[:, 1, 0] = -fy * my / den * dden_dalpha
+        J[:, 0, 1] = -fx * mx / den * dden_dbeta
+        J[:, 1, 1] = -fy * my / den * dden_dbeta
+    J[:, 0, 2] = mx
+    J[:, 1, 3] = my
+    J[:, 0, 4] = 1.0
+    J[:, 1, 5] = 1.0
+    return uv, J
+
+
+def eucm_valid(params: np.ndarray, rays: np.ndarray) -> np.ndarray:
+    """Rays (N, 3) the extended unified model projects one-to-one, (N,) bool.
+
+    ``z > -w d`` (``d`` as in :func:`eucm_project`) with ``w = alpha / (1 - alpha)`` for
+    ``alpha <= 0.5`` (a positive denominator) and ``w = (1 - alpha) / alpha`` for ``alpha
+    > 0.5`` (where the mapping folds back), as Usenko et al. 2018 (Sec. III) state it;
+    also ``0 <= alpha <= 1`` and ``beta > 0``.
+    """
+    alpha, beta = float(params[0]), float(params[1])
+    n = len(rays)
+    if not (0.0 <= alpha <= 1.0) or not (beta > 0.0 and math.isfinite(beta)):
+        return np.zeros(n, bool)
+    if alpha <= 0.5:
+        w = alpha / (1 - alpha)
+    else:
+        w = (1 - alpha) / alpha
+    x, y, z = rays[:, 0], rays[:, 1], rays[:, 2]
+    d = np.sqrt(beta * (x * x + y * y) + z * z)
+    den = alpha * d + (1 - alpha) * z
+    return (z > -w * d) & (den > 0)
+
+
 # --------------------------------------------------------------------------- least squares
 
 
@@ -679,6 +812,128 @@ def _ds_initial(rays, uv, pp) -> np.ndarray:
     )  # fmt: skip
 
 
+def _eucm_initial(rays, uv, pp) -> np.ndarray:
+    """Grid over ``(alpha, beta)`` (:func:`_grid_initial`)."""
+    shapes = [(a, b) for a in np.linspace(0.0, 0.95, 20) for b in (0.5, 1.0, 1.5, 2.0)]
+    return _grid_initial(
+        rays, uv, pp, shapes,
+        lambda s, fx, fy: np.array([s[0], s[1], fx, fy, pp[0], pp[1]]),
+        eucm_valid, eucm_project, "extended-unified-model",
+    )  # fmt: skip
+
+
+def _plumb_initial(rays, uv, pp) -> np.ndarray:
+    """``rho_d = rho_u (1 + k1 r2 + k2 r2^2 + k3 r2^3)`` solved linearly, no tangential terms."""
+    f, _ = _radial_polynomial_init(rays, uv, pp, 4)
+    rho_u = np.hypot(rays[:, 0], rays[:, 1]) / rays[:, 2]
+    rho_d = np.linalg.norm(uv - pp, axis=1) / f
+    r2 = rho_u**2
+    A = np.column_stack([rho_u * r2, rho_u * r2**2, rho_u * r2**3])
+    scale = np.linalg.norm(A, axis=0)
+    scale[scale == 0] = 1.0
+    sol, *_ = np.linalg.lstsq(A / scale, rho_d - rho_u, rcond=None)
+    k = sol / scale
+    return np.array([f, f, pp[0], pp[1], k[0], k[1], 0.0, 0.0, k[2]])
+
+
+def _smoothing_operator(config: SplineConfig) -> np.ndarray:
+    """Second differences of a control-point grid along x and y, (R, Nx Ny)."""
+    nx, ny = config.Nx, config.Ny
+    rows = []
+    for j in range(ny):
+        for i in range(1, nx - 1):
+            r = np.zeros(nx * ny)
+            r[j * nx + i - 1 : j * nx + i + 2] = (1.0, -2.0, 1.0)
+            rows.append(r)
+    for j in range(1, ny - 1):
+        for i in range(nx):
+            r = np.zeros(nx * ny)
+            r[[(j - 1) * nx + i, j * nx + i, (j + 1) * nx + i]] = (1.0, -2.0, 1.0)
+            rows.append(r)
+    return np.array(rows)
+
+
+def _fit_splined(
+    camera, rays, uv, pp, nx: int | None = None
+) -> tuple[SplineConfig, np.ndarray, LMResult]:
+    """Fit a splined stereographic model (:mod:`gtsam_sphere.apps.splined`) to ``uv`` (N, 2).
+
+    The configuration's valid region spans the camera's whole image (the stereographic
+    points of its pixels' rays, :func:`~gtsam_sphere.apps.splined.choose_config`). The
+    intrinsics core is fixed first: ``cx, cy`` the principal point, ``fx = fy`` the
+    stereographic focal length near the axis (the median of ``|uv - pp| / |u|`` over the
+    innermost fifth of the samples); then the control points are fitted (the problem is
+    linear in them) with a smoothness prior (``SPLINE_SMOOTHING`` times ``f`` times their
+    second differences, as pixel residuals). Image pixels whose rays lie beyond the
+    observed region's widest ray enter with weight ``SPLINE_OUTSIDE_WEIGHT``: there the
+    spline follows the calibration's own extrapolation (as the other exports are measured
+    against it) instead of a blind continuation. Returns ``(config, params, fit)``.
+    """
+    w, h = int(camera.width), int(camera.height)
+    step = max(2.0, math.sqrt(w * h / 20000.0))
+    gu = np.arange(0.0, w, step)
+    gv = np.arange(0.0, h, step)
+    edge = np.concatenate(
+        [
+            np.column_stack([gu, np.zeros_like(gu)]),
+            np.column_stack([gu, np.full_like(gu, h - 1.0)]),
+            np.column_stack([np.zeros_like(gv), gv]),
+            np.column_stack([np.full_like(gv, w - 1.0), gv]),
+            np.stack(np.meshgrid(gu[::4], gv[::4]), -1).reshape(-1, 2),
+            uv,
+        ]
+    )
+    image_rays = pixel_rays(camera, edge)
+    u_all = stereographic_u(image_rays[np.all(np.isfinite(image_rays), axis=1)])
+    config = choose_config(np.concatenate([u_all, stereographic_u(rays)]), nx or SPLINE_NX)
+    # the image beyond the observed field, weighted down
+    grid, grid_rays = edge[: len(edge) - len(uv)], image_rays[: len(edge) - len(uv)]
+    beyond = np.all(np.isfinite(grid_rays), axis=1)
+    beyond[beyond] = incidence_deg(grid_rays[beyond]) > float(np.max(incidence_deg(rays)))
+    if len(rays) > SPLINE_MAX_FIT_SAMPLES:
+        sub = np.unique(np.linspace(0, len(rays) - 1, SPLINE_MAX_FIT_SAMPLES).astype(int))
+        rays, uv = rays[sub], uv[sub]
+    n_in = len(rays)
+    rays = np.concatenate([rays, grid_rays[beyond]])
+    uv = np.concatenate([uv, grid[beyond]])
+    row_weight = np.concatenate([np.ones(n_in), np.full(int(beyond.sum()), SPLINE_OUTSIDE_WEIGHT)])
+    u = stereographic_u(rays)
+    ru = np.linalg.norm(u[:n_in], axis=1)
+    rp = np.linalg.norm(uv[:n_in] - pp, axis=1)
+    inner = ru <= np.percentile(ru, 20)
+    inner &= ru > 1e-6
+    f = (
+        float(np.median(rp[inner] / ru[inner]))
+        if inner.sum() >= 5
+        else float(np.sum(rp * ru) / max(np.sum(ru * ru), 1e-300))
+    )
+    core = np.array([f, f, pp[0], pp[1]])
+    index, weight = spline_weights(config, u)
+    n, m = len(u), config.Nx * config.Ny
+    B = np.zeros((n, m))
+    np.put_along_axis(B, index, weight, axis=1)  # the indices of a row are distinct
+    L = _smoothing_operator(config) * (SPLINE_SMOOTHING * f)
+    target = (uv - pp - f * u) * row_weight[:, None]  # f * du must equal this
+    Jx = np.vstack([f * B * row_weight[:, None], L])  # the same design for dux and duy (fx = fy)
+    zeros = np.zeros(len(L))
+
+    def fun(c):
+        cc = c.reshape(-1, 2)
+        r = np.concatenate(
+            [
+                (Jx @ cc[:, 0]) - np.concatenate([target[:, 0], zeros]),
+                (Jx @ cc[:, 1]) - np.concatenate([target[:, 1], zeros]),
+            ]
+        )
+        J = np.zeros((len(r), 2 * m))
+        J[: len(Jx), 0::2] = Jx
+        J[len(Jx) :, 1::2] = Jx
+        return r, J
+
+    fit = levenberg_marquardt(fun, np.zeros(2 * m), max_iterations=50)
+    return config, np.concatenate([core, fit.x]), fit
+
+
 # --------------------------------------------------------------------------- the result
 
 
@@ -689,7 +944,7 @@ class ExportResult:
     Attributes
     ----------
     target : str
-        One of ``TARGETS``.
+        One of ``TARGETS`` or ``FORMAT_FITS``.
     params : dict
         Named parameters (``fx, fy, cx, cy`` px; ``k1..`` / ``p1, p2``
         dimensionless; ``xi, alpha`` for the double sphere).
@@ -749,16 +1004,23 @@ class ExportResult:
     iterations: int = 0
     converged: bool = True
     source: str | None = None
+    spline: SplineConfig | None = None
+    coefficients: np.ndarray | None = None
 
     @property
     def family(self) -> str:
-        """``"kannala-brandt"``, ``"rational"``, ``"double-sphere"`` or ``"omni"``."""
+        """``"kannala-brandt"``, ``"rational"``, ``"double-sphere"``, ``"omni"``,
+        ``"plumb-bob"``, ``"eucm"`` or ``"splined-stereographic"``."""
         return TARGET_FAMILY[self.target]
 
     @property
     def vector(self) -> np.ndarray:
-        """The parameters as the vector of the model functions (``kb_project`` ...)."""
-        return np.array([self.params[n] for n in _FAMILY_NAMES[self.family]], float)
+        """The parameters as the vector of the model functions (``kb_project`` ...); for
+        the splined model mrcal's intrinsics (core, then ``coefficients``)."""
+        core = np.array([self.params[n] for n in _FAMILY_NAMES[self.family]], float)
+        if self.family == "splined-stereographic":
+            return np.concatenate([core, np.asarray(self.coefficients, float).ravel()])
+        return core
 
     @property
     def K(self) -> np.ndarray:
@@ -774,6 +1036,7 @@ class ExportResult:
             "kannala-brandt": _KB_NAMES[4:],
             "rational": _RATIONAL_NAMES[4:],
             "omni": _OMNI_NAMES[5:],
+            "plumb-bob": _PLUMB_NAMES[4:],
         }.get(self.family, ())
         return np.array([self.params[n] for n in names], float)
 
@@ -784,6 +1047,10 @@ class ExportResult:
             return ds_valid(self.vector, rays)
         if self.family == "omni":
             return omni_valid(self.vector, rays)
+        if self.family == "eucm":
+            return eucm_valid(self.vector, rays)
+        if self.family == "splined-stereographic":
+            return self.spline.in_valid_region(stereographic_u(rays))
         inc = incidence_deg(rays)
         limit = self.params.get("max_incidence_deg", 90.0)
         return (rays[:, 2] > 0) & (inc < limit)
@@ -810,7 +1077,7 @@ class ExportResult:
         if not ok.any():
             return out
         r = rays[ok]
-        if use_cv2 and self.target in ("opencv-fisheye", "opencv-rational"):
+        if use_cv2 and self.target in ("opencv-fisheye", "opencv-rational", "opencv-plumb-bob"):
             import cv2
 
             zero = np.zeros(3)
@@ -821,10 +1088,15 @@ class ExportResult:
                 uv, _ = cv2.projectPoints(obj[0], zero, zero, self.K, self.D)
             out[ok] = np.asarray(uv, float).reshape(-1, 2)
             return out
+        if self.family == "splined-stereographic":
+            out[ok] = splined_project(self.vector, r, self.spline)
+            return out
         fn = {
             "kannala-brandt": kb_project,
             "rational": rational_project,
             "omni": omni_project,
+            "plumb-bob": plumb_bob_project,
+            "eucm": eucm_project,
         }.get(self.family, ds_project)
         out[ok] = fn(self.vector, r)
         return out
@@ -929,6 +1201,13 @@ class ExportResult:
             doc["D"] = self.D.tolist()
             doc["xi"] = self.params["xi"]
             doc["model"] = "cv2.omnidir (unified / Mei), D = (k1, k2, p1, p2), no skew"
+        elif self.family == "plumb-bob":
+            doc["dist"] = self.D.tolist()
+            doc["model"] = "cv2 pinhole, dist = (k1, k2, p1, p2, k3) (ROS plumb_bob)"
+        elif self.family == "splined-stereographic":
+            doc["lensmodel"] = self.spline.lensmodel
+            doc["intrinsics"] = self.vector.tolist()
+            doc["model"] = "mrcal splined stereographic (see gtsam_sphere.apps.splined)"
         else:
             doc["params"] = dict(self.params)
         doc["fit"] = self.fit_dict()
@@ -951,8 +1230,12 @@ class ExportResult:
             model, dist_model = "omni", "radtan"
             intr = [p["xi"], p["fx"], p["fy"], p["cx"], p["cy"]]
             dist = list(self.D)
+        elif self.family == "eucm":
+            model, dist_model = "eucm", "none"
+            intr = [p["alpha"], p["beta"], p["fx"], p["fy"], p["cx"], p["cy"]]
+            dist = []
         else:
-            raise ValueError("Kalibr has no rational distortion model; export opencv-rational")
+            raise ValueError(f"Kalibr has no {self.family} model; export {self.target} as JSON")
 
         def seq(values) -> str:
             return "[" + ", ".join(repr(float(v)) for v in values) + "]"
@@ -1006,7 +1289,7 @@ def export_camera(
         ``project`` / ``unproject`` in the camera frame (x right, y down, z
         forward), raw pixels in OpenCV's convention.
     target : str
-        One of ``TARGETS``.
+        One of ``TARGETS`` or ``FORMAT_FITS``.
     observations_uv_px : ndarray, shape (M, 2), optional
         The calibration's observed pixels: they define the observed region
         and the fit is also evaluated at them.
@@ -1032,19 +1315,19 @@ def export_camera(
     ValueError
         Unknown target, or no sampled ray inside the model's domain.
     """
-    if target not in TARGETS:
+    if target not in TARGETS + FORMAT_FITS:
         raise ValueError(f"unknown export target {target!r}; choose from {TARGETS}")
     sample = sample_region(camera, observations_uv_px, region, n_samples)
     rays, uv = sample.rays, sample.uv_px
     inc = sample.incidence_deg
     pp = np.array([camera.xp, camera.yp], float)
     family = TARGET_FAMILY[target]
-    if family == "rational" and max_incidence_deg is None:
+    if family in ("rational", "plumb-bob") and max_incidence_deg is None:
         max_incidence_deg = RATIONAL_MAX_INCIDENCE_DEG
     use = np.ones(len(rays), bool)
     if max_incidence_deg is not None:
         use &= inc < float(max_incidence_deg)
-    if family in ("kannala-brandt", "rational"):
+    if family in ("kannala-brandt", "rational", "plumb-bob"):
         use &= rays[:, 2] > 1e-9
     if use.sum() < 20:
         raise ValueError(
@@ -1052,6 +1335,7 @@ def export_camera(
             f"inside the model's domain; nothing to fit"
         )
     extra: dict[str, float] = {}
+    spline = coefficients = None
     if family == "kannala-brandt":
         names = _KB_NAMES
         p0 = _kb_initial(rays[use], uv[use], pp)
@@ -1071,6 +1355,31 @@ def export_camera(
         domain = f"rays below {max_incidence_deg:g} deg incidence (pinhole model)"
         extra["max_incidence_deg"] = float(max_incidence_deg)
         covered_p = fit.x
+    elif family == "plumb-bob":
+        names = _PLUMB_NAMES
+        p0 = _plumb_initial(rays[use], uv[use], pp)
+        fit = _fit(plumb_bob_project, p0, rays[use], uv[use], max_iterations=300)
+        domain = f"rays below {max_incidence_deg:g} deg incidence (pinhole model)"
+        extra["max_incidence_deg"] = float(max_incidence_deg)
+        covered_p = fit.x
+    elif family == "eucm":
+        names = _EUCM_NAMES
+        p0 = _eucm_initial(rays[use], uv[use], pp)
+        use &= eucm_valid(p0, rays)
+        r_use = rays[use]
+        fit = _fit(eucm_project, p0, r_use, uv[use], lambda p: bool(np.all(eucm_valid(p, r_use))))
+        domain = "rays the extended unified model projects (Khomutenko et al. 2016)"
+        if max_incidence_deg is not None:
+            domain += f", below {max_incidence_deg:g} deg incidence"
+        covered_p = fit.x
+    elif family == "splined-stereographic":
+        names = _CORE_NAMES
+        use &= np.all(np.isfinite(stereographic_u(rays)), axis=1)
+        spline, full, fit = _fit_splined(camera, rays[use], uv[use], pp)
+        covered_p, coefficients = full[:4], full[4:]
+        domain = f"rays inside the spline's valid region ({spline.lensmodel})"
+        if max_incidence_deg is not None:
+            domain += f", below {max_incidence_deg:g} deg incidence"
     elif family == "omni":
         names = _OMNI_NAMES
         p0 = _omni_initial(rays[use], uv[use], pp)
@@ -1111,6 +1420,8 @@ def export_camera(
         iterations=fit.iterations,
         converged=fit.converged,
         source=source,
+        spline=spline,
+        coefficients=coefficients,
     )
     covered = use & result.in_domain(rays)
     pred = result.project(rays[covered])
@@ -1308,7 +1619,7 @@ def export_calibration(
     ----------
     calib : Calibration
     target : str
-        One of ``TARGETS``.
+        One of ``TARGETS`` or ``FORMAT_FITS``.
     region, max_incidence_deg, n_samples
         As :func:`export_camera`.
     source : str, optional
@@ -1358,7 +1669,7 @@ def export_calibration(
             source=source,
         )
     except ValueError as exc:
-        if target not in TARGETS or region not in REGIONS:
+        if target not in TARGETS + FORMAT_FITS or region not in REGIONS:
             raise
         raise DatasetError(f"{source or 'calibration'}: {exc}") from None
 
@@ -1401,6 +1712,8 @@ def _finite_or_none(obj):
 
 #: rig targets of the command line (:mod:`gtsam_sphere.apps.export_rig`)
 RIG_TARGETS: tuple[str, ...] = ("kalibr", "opencv-stereo")
+#: other tools' file formats, single cameras and rigs (:mod:`gtsam_sphere.apps.export_formats`)
+FORMAT_TARGETS: tuple[str, ...] = ("ros", "mrcal", "basalt")
 
 
 def add_cli_arguments(parser: argparse.ArgumentParser) -> None:
@@ -1409,10 +1722,12 @@ def add_cli_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--to",
         required=True,
-        choices=TARGETS + RIG_TARGETS,
+        choices=TARGETS + RIG_TARGETS + FORMAT_TARGETS,
         dest="target",
         help="model; kalibr (camchain.yaml of every camera, with T_cn_cnm1) and opencv-stereo "
-        "(R, T and both cameras' models) export a rig",
+        "(R, T and both cameras' models) export a rig; ros (CameraInfo YAML), mrcal "
+        "(.cameramodel) and basalt (calibration.json) write those tools' files for a camera "
+        "or a rig (ros, mrcal: one file per rig camera, OUTPUT-ID.ext)",
     )
     parser.add_argument(
         "-o",
@@ -1425,16 +1740,39 @@ def add_cli_arguments(parser: argparse.ArgumentParser) -> None:
         "--camera",
         default=None,
         metavar="ID",
-        help="rig calibration: the camera a single-camera target (opencv-*, kalibr-*) exports",
+        help="rig calibration: the camera a single-camera target (opencv-*, kalibr-*) exports; "
+        "with ros, mrcal, basalt only that camera (default every camera)",
     )
     parser.add_argument(
         "--kalibr-model",
         action="append",
         default=None,
         metavar="[ID=]MODEL",
-        help="--to kalibr: auto, pinhole-equi, omni-radtan or ds-none for every camera, or "
-        "ID=MODEL for one (repeat); default auto: per camera the model covering most of the "
-        "observed region, then the smallest fit residual",
+        help="--to kalibr: auto, pinhole-equi, omni-radtan, ds-none or eucm-none for every "
+        "camera, or ID=MODEL for one (repeat); default auto: per camera the model (of the "
+        "first three) covering most of the observed region, then the smallest fit residual",
+    )
+    parser.add_argument(
+        "--ros-model",
+        default=None,
+        choices=("auto", "equidistant", "plumb_bob", "rational_polynomial"),
+        help="--to ros: distortion_model (default auto: equidistant or rational_polynomial, "
+        "whichever covers more of the observed region, then fits better)",
+    )
+    parser.add_argument(
+        "--mrcal-model",
+        default=None,
+        choices=("auto", "opencv8", "splined"),
+        help="--to mrcal: LENSMODEL_OPENCV8 or LENSMODEL_SPLINED_STEREOGRAPHIC (default auto: "
+        "OPENCV8 when the observed field is below 75 deg and it fits within 0.1 px everywhere "
+        "there, else the splined model)",
+    )
+    parser.add_argument(
+        "--basalt-model",
+        default=None,
+        choices=("auto", "kb4", "ds", "eucm"),
+        help="--to basalt: camera_type of every camera (default auto: per camera the model "
+        "covering most of the observed region, then the smallest residual)",
     )
     parser.add_argument(
         "--stereo-model",
@@ -1480,6 +1818,9 @@ def check_target_options(args) -> None:
         ("--kalibr-model", getattr(args, "kalibr_model", None), "kalibr"),
         ("--stereo-model", getattr(args, "stereo_model", "auto") != "auto", "opencv-stereo"),
         ("--stereo-cameras", getattr(args, "stereo_cameras", None), "opencv-stereo"),
+        ("--ros-model", getattr(args, "ros_model", None), "ros"),
+        ("--mrcal-model", getattr(args, "mrcal_model", None), "mrcal"),
+        ("--basalt-model", getattr(args, "basalt_model", None), "basalt"),
     ):
         if given and args.target != target:
             raise OptionsError(f"{option} applies to --to {target}, not --to {args.target}")
@@ -1493,6 +1834,8 @@ def run_cli(args) -> int:
     check_target_options(args)
     if args.target in RIG_TARGETS:  # export_rig.run_cli (the command line routes it)
         raise OptionsError(f"--to {args.target} is a rig export: run it with export_rig.run_cli")
+    if args.target in FORMAT_TARGETS:  # export_formats.run_cli (the command line routes it)
+        raise OptionsError(f"--to {args.target}: run it with export_formats.run_cli")
     calib = load_calibration(args.calibration)
     is_rig = hasattr(calib, "camera_ids")
     if is_rig:

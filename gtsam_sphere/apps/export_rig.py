@@ -14,7 +14,8 @@ extrinsics come from the calibration's ``cam_from_rig`` as they are.
     camera ``n`` (``cam_from_rig[n] * inverse(cam_from_rig[n-1])``), in
     metres. Models (:data:`KALIBR_MODELS`): ``pinhole-equi`` (Kannala-Brandt,
     OpenCV fisheye; rays below 90 deg only), ``omni-radtan`` (unified / Mei,
-    ``cv2.omnidir``), ``ds-none`` (double sphere); ``auto`` fits the three and
+    ``cv2.omnidir``), ``ds-none`` (double sphere), ``eucm-none`` (extended unified
+    model, on request); ``auto`` fits the first three and
     keeps, per camera, the one that covers most of the observed region, then the
     smallest residual.
 ``opencv-stereo``
@@ -49,7 +50,11 @@ KALIBR_MODELS: dict[str, str] = {
     "pinhole-equi": "kalibr-equi",
     "omni-radtan": "kalibr-omni",
     "ds-none": "kalibr-ds",
+    "eucm-none": "kalibr-eucm",
 }
+#: the models ``auto`` chooses from (``eucm-none`` on request: the double sphere, as many
+#: parameters, fits wide lenses at least as well)
+KALIBR_AUTO: tuple[str, ...] = ("pinhole-equi", "omni-radtan", "ds-none")
 #: OpenCV stereo model -> single-camera export target
 STEREO_MODELS: dict[str, str] = {"fisheye": "opencv-fisheye", "omnidir": "opencv-omnidir"}
 #: metres per unit of the calibration's ``units`` (Kalibr works in metres)
@@ -161,7 +166,7 @@ def _best(fits: list[ExportResult]) -> ExportResult:
 
 
 def _fit_kalibr(calib, cid: str, model: str, source: str, **kwargs) -> ExportResult:
-    names = list(KALIBR_MODELS) if model == "auto" else [model]
+    names = list(KALIBR_AUTO) if model == "auto" else [model]
     fits, errors = [], []
     for name in names:
         try:
@@ -256,6 +261,9 @@ def kalibr_camchain(
         elif fit.family == "omni":
             cam_model, dist_model = "omni", "radtan"
             intr, dist = [p["xi"], p["fx"], p["fy"], p["cx"], p["cy"]], list(fit.D)
+        elif fit.family == "eucm":
+            cam_model, dist_model = "eucm", "none"
+            intr, dist = [p["alpha"], p["beta"], p["fx"], p["fy"], p["cx"], p["cy"]], []
         else:
             cam_model, dist_model = "ds", "none"
             intr, dist = [p["xi"], p["alpha"], p["fx"], p["fy"], p["cx"], p["cy"]], []

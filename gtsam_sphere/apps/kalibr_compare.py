@@ -1,9 +1,15 @@
-"""Compare a calibration with a Kalibr ``camchain.yaml``: projections over the field.
+"""Compare a calibration with a Kalibr ``camchain.yaml`` or an mrcal ``.cameramodel``:
+projections over the field.
+
+An mrcal file (``--with FILE.cameramodel``, read by
+:func:`gtsam_sphere.apps.export_formats.read_cameramodel`: ``LENSMODEL_PINHOLE``,
+``OPENCV4/5/8``, ``STEREOGRAPHIC``, ``SPLINED_STEREOGRAPHIC``) is compared the same way
+as a Kalibr camera; its ``extrinsics`` are not used.
 
 ``gtsam-sphere compare CALIB.json --with camchain.yaml [--camera cam0]`` reads the
-Kalibr camera (models ``pinhole-equi``, ``omni-radtan``, ``ds-none``; Kalibr's camchain
-keys ``camera_model``, ``intrinsics``, ``distortion_model``, ``distortion_coeffs``,
-``resolution``), samples the region the calibration observed on a pixel grid
+Kalibr camera (models ``pinhole-equi``, ``omni-radtan``, ``ds-none``, ``eucm-none``;
+Kalibr's camchain keys ``camera_model``, ``intrinsics``, ``distortion_model``,
+``distortion_coeffs``, ``resolution``), samples the region the calibration observed on a pixel grid
 (:func:`gtsam_sphere.apps.export.sample_region`), takes our ray of every sample pixel and
 projects it with Kalibr's model: the distance between Kalibr's pixel and the sample
 pixel is the projection difference of the two calibrations for that ray (px; both in
@@ -27,7 +33,16 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..core.errors import DatasetError, OptionsError
-from .export import ds_project, ds_valid, kb_project, omni_project, omni_valid, sample_region
+from .export import (
+    ds_project,
+    ds_valid,
+    eucm_project,
+    eucm_valid,
+    kb_project,
+    omni_project,
+    omni_valid,
+    sample_region,
+)
 
 __all__ = [
     "KalibrCamera",
@@ -41,6 +56,7 @@ MODELS = {
     ("pinhole", "equidistant"): "pinhole-equi",
     ("omni", "radtan"): "omni-radtan",
     ("ds", "none"): "ds-none",
+    ("eucm", "none"): "eucm-none",
 }
 BANDS_DEG = (0.0, 30.0, 60.0, 90.0, 120.0, 180.0)
 
@@ -54,7 +70,7 @@ class KalibrCamera:
     camera_id : str
         Its key in the file (``cam0``, ...).
     model : str
-        ``pinhole-equi``, ``omni-radtan`` or ``ds-none``.
+        ``pinhole-equi``, ``omni-radtan``, ``ds-none`` or ``eucm-none``.
     intrinsics : ndarray
         Kalibr's ``intrinsics``: ``[fu, fv, pu, pv]`` (pinhole), ``[xi, fu, fv, pu, pv]``
         (omni), ``[xi, alpha, fu, fv, pu, pv]`` (ds); pixels and dimensionless.
@@ -73,6 +89,7 @@ class KalibrCamera:
     distortion: np.ndarray
     resolution: tuple[int, int]
     rostopic: str = ""
+    tool: str = "Kalibr"
 
     def project(self, rays: np.ndarray) -> np.ndarray:
         """Pixels ``(N, 2)`` of camera-frame rays ``(N, 3)``; NaN where the model has none."""
@@ -84,6 +101,8 @@ class KalibrCamera:
         elif self.model == "omni-radtan":
             params = np.concatenate([i, d])
             uv, ok = omni_project(params, rays), omni_valid(params, rays)
+        elif self.model == "eucm-none":
+            uv, ok = eucm_project(i, rays), eucm_valid(i, rays)
         else:
             uv, ok = ds_project(i, rays), ds_valid(i, rays)
         uv = np.where(ok[:, None], uv, np.nan)
@@ -169,7 +188,7 @@ def read_kalibr_camchain(path: str) -> dict[str, KalibrCamera]:
     if not blocks:
         raise DatasetError(f"{path}: no camera block (expected 'cam0:' ...)")
     out = {}
-    sizes = {"pinhole-equi": (4, 4), "omni-radtan": (5, 4), "ds-none": (6, 0)}
+    sizes = {"pinhole-equi": (4, 4), "omni-radtan": (5, 4), "ds-none": (6, 0), "eucm-none": (6, 0)}
     for cid, b in blocks.items():
         for k in ("camera_model", "intrinsics", "distortion_model", "resolution"):
             if k not in b:
@@ -223,21 +242,22 @@ class KalibrComparison:
     field_stats: dict = field(default_factory=dict)
     bands: list = field(default_factory=list)
     observed: dict = field(default_factory=dict)
+    tool: str = "Kalibr"
 
     def summary(self) -> str:
         """Human-readable lines."""
 
         def row(label: str, s: dict) -> str:
             if not s.get("n_projected"):
-                return f"  {label}: {s.get('n', 0)} rays, none projected by Kalibr's model"
+                return f"  {label}: {s.get('n', 0)} rays, none projected by {self.tool}'s model"
             return (
                 f"  {label}: {s['n_projected']} of {s['n']} rays, RMS {s['rms_px']:.4f} px, "
                 f"95% {s['p95_px']:.4f} px, max {s['max_px']:.4f} px"
             )
 
         lines = [
-            f"Kalibr {self.camera_id} ({self.model}) vs this calibration: pixel of our ray "
-            f"through Kalibr's model minus ours, over the {self.region}",
+            f"{self.tool} {self.camera_id} ({self.model}) vs this calibration: pixel of our ray "
+            f"through {self.tool}'s model minus ours, over the {self.region}",
             row("field", self.field_stats),
         ]
         lines += [row(f"{b['lo_deg']:.0f}-{b['hi_deg']:.0f} deg", b) for b in self.bands if b["n"]]
@@ -268,7 +288,9 @@ def compare_with_kalibr(
     ----------
     calib : Calibration
         Ours (its ``extra["observations"]["uv_px"]`` give the observed region).
-    kalibr : KalibrCamera
+    kalibr : KalibrCamera or MrcalCamera
+        Anything with ``camera_id``, ``model``, ``resolution``, ``tool`` and
+        ``project(rays (N, 3)) -> (N, 2)`` px.
     region : {"hull", "radius", "image"}
         The sampled region (:func:`gtsam_sphere.apps.export.sample_region`).
     n_samples : int
@@ -288,7 +310,7 @@ def compare_with_kalibr(
     cam = calib.camera
     if (int(cam.width), int(cam.height)) != tuple(kalibr.resolution):
         raise DatasetError(
-            f"Kalibr {kalibr.camera_id} has resolution {kalibr.resolution[0]}x"
+            f"{kalibr.tool} {kalibr.camera_id} has resolution {kalibr.resolution[0]}x"
             f"{kalibr.resolution[1]}, the calibration {int(cam.width)}x{int(cam.height)}"
         )
     obs = calib.extra.get("observations") if isinstance(calib.extra, dict) else None
@@ -298,7 +320,9 @@ def compare_with_kalibr(
     sample = sample_region(cam, uv_obs, region, n_samples)
     err = np.linalg.norm(kalibr.project(sample.rays) - sample.uv_px, axis=1)
     inc = sample.incidence_deg
-    result = KalibrComparison(kalibr.camera_id, kalibr.model, sample.description, _stats(err))
+    result = KalibrComparison(
+        kalibr.camera_id, kalibr.model, sample.description, _stats(err), tool=kalibr.tool
+    )
     for lo, hi in zip(BANDS_DEG[:-1], BANDS_DEG[1:]):
         sel = (inc >= lo) & (inc < hi)
         result.bands.append({"lo_deg": lo, "hi_deg": hi, **_stats(err[sel])})
@@ -333,6 +357,24 @@ def run_cli(args: argparse.Namespace) -> int:
     from ..io.calibration import load_calibration
 
     calib = load_calibration(args.dataset)
+    if str(args.with_).endswith(".cameramodel"):
+        from .export_formats import read_cameramodel
+
+        mrcal_cam = read_cameramodel(args.with_)
+        if hasattr(calib, "camera_ids"):
+            if not args.camera:
+                raise OptionsError(
+                    f"{args.dataset} is a rig ({', '.join(calib.camera_ids)}): name the camera "
+                    f"{args.with_} describes with --camera"
+                )
+            if args.camera not in calib.camera_ids:
+                raise OptionsError(
+                    f"--camera {args.camera!r} is not a camera of {args.dataset} "
+                    f"({', '.join(calib.camera_ids)})"
+                )
+            calib = calib.camera_calibration(args.camera)
+        print(compare_with_kalibr(calib, mrcal_cam, region=args.region).summary())
+        return 0
     cams = read_kalibr_camchain(args.with_)
     wanted = [args.camera] if args.camera else list(cams)
     for cid in wanted:

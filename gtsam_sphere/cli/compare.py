@@ -21,10 +21,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--with",
         dest="with_",
-        metavar="CAMCHAIN.yaml",
+        metavar="CAMCHAIN.yaml|MODEL.cameramodel",
         default=None,
-        help="compare CALIB.json with a Kalibr camchain (pinhole-equi, omni-radtan, ds-none): "
-        "projection differences over the observed field",
+        help="compare CALIB.json with a Kalibr camchain (pinhole-equi, omni-radtan, ds-none, "
+        "eucm-none) "
+        "or an mrcal .cameramodel: projection differences over the observed field",
     )
     kalibr_compare.add_cli_arguments(p)
 

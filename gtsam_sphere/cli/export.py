@@ -9,7 +9,7 @@ from __future__ import annotations
 import argparse
 
 NAME = "export"
-HELP = "fit OpenCV / Kalibr camera models to a calibration"
+HELP = "fit OpenCV / Kalibr / ROS / mrcal / basalt camera models to a calibration"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -27,4 +27,8 @@ def run(args) -> int:
         from ..apps import export_rig
 
         return export_rig.run_cli(args)
+    if args.target in export.FORMAT_TARGETS:  # ROS CameraInfo, mrcal, basalt
+        from ..apps import export_formats
+
+        return export_formats.run_cli(args)
     return export.run_cli(args)
