@@ -256,3 +256,70 @@ def test_visibility_by_projection_has_no_phantom_observations():
     seen = inside(cam.project(pts))
     assert not (seen & ~cam.valid_mask(pts)).any()
     assert seen.sum() > 0.2 * len(pts) and alpha[seen].max() <= 82.0 + 1e-9
+
+
+# every model family: (kwargs of SphereCamera, observed field in degrees or None)
+_FAMILIES = {
+    "sphere-75": (dict(), 75.0),
+    "sphere-past-180": (dict(), 120.0),  # the paper's >180 deg lens: two halves, one disc
+    "sphere-brown": (dict(brown={"k1": -0.05, "p1": 2e-4, "a1": 1e-4}, brown_scale_px=640.0), 80.0),
+    "radial-narrow": (dict(radial={"g3": 0.3, "w": math.log(0.25)}), 45.0),
+    "radial-fisheye": (dict(radial={"g3": -0.04, "g5": 0.05}), 100.0),
+    "radial-250": (dict(radial={}), 125.0),
+    "radial-warped-rim": (dict(radial={"g3": 0.02, "w": math.log(4.0)}), 150.0),
+    "radial-folding-polynomial": (dict(radial={"g3": -0.2}), None),
+}
+
+
+@pytest.mark.parametrize("with_knn", [False, True], ids=["plain", "knn"])
+@pytest.mark.parametrize("family", sorted(_FAMILIES))
+def test_every_family_is_nan_exactly_beyond_its_valid_field(family, with_knn):
+    """project: finite (and inverted by unproject) inside the valid field, NaN beyond it.
+
+    Inside: every ray up to ``valid_alpha_rad`` projects and comes back (the sphere
+    mapping's back half with ``hemisphere=-1``); beyond, up to 180 deg: NaN, and
+    ``valid_mask`` says the same. No ray beyond the field lands in the image.
+    """
+    kwargs, observed_deg = _FAMILIES[family]
+    cam = SphereCamera(
+        W,
+        H,
+        640.0,
+        400.0,
+        300.0,
+        correction=_knn() if with_knn else None,
+        observed_alpha_rad=None if observed_deg is None else math.radians(observed_deg),
+        **kwargs,
+    )
+    limit_deg = math.degrees(cam.valid_alpha_rad())
+    if observed_deg is not None:
+        assert limit_deg == pytest.approx(
+            min(
+                observed_deg + 2.0,
+                math.degrees(cam.max_alpha_rad()) if cam.radial is not None else 180.0,
+            )
+        )
+    else:
+        assert limit_deg == pytest.approx(math.degrees(cam.max_alpha_rad()))
+        assert limit_deg < 179.0  # this polynomial folds: its own field is the limit
+    inside = np.linspace(0.0, limit_deg - 0.05, 60)
+    beyond = np.linspace(limit_deg + 0.05, 180.0, 40)
+    for azimuth in (0.0, 37.0, 135.0, 250.0):
+        rays_in = _rays_at(inside, azimuth)
+        rays_out = _rays_at(beyond, azimuth)
+        uv_in = cam.project(rays_in)
+        uv_out = cam.project(rays_out)
+        assert np.isfinite(uv_in).all(), (family, azimuth)
+        assert np.isnan(uv_out).all(), (family, azimuth)
+        np.testing.assert_array_equal(cam.valid_mask(rays_in), True)
+        np.testing.assert_array_equal(cam.valid_mask(rays_out), False)
+        back = np.where(inside > 90.0, -1.0, 1.0) if cam.radial is None else 1.0
+        if cam.radial is None and cam.brown:
+            back = cam.pixel_hemisphere(uv_in)
+        rays_back = cam.unproject(uv_in, hemisphere=back)
+        err_deg = np.degrees(np.arccos(np.clip(np.sum(rays_back * rays_in, axis=1), -1, 1)))
+        # the sphere mapping is flat at 90 deg: its inverse loses precision there
+        near_fold = (
+            (np.abs(inside - 90.0) < 3.0) if cam.radial is None else np.zeros_like(inside, bool)
+        )
+        assert err_deg[~near_fold].max() < 1e-3, (family, azimuth, err_deg.max())

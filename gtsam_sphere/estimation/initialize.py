@@ -460,12 +460,20 @@ class _Problem:
         err = self.errors_px(idx, hyp, res.R, res.t)
         return res, float(np.minimum(err * err, thr_px * thr_px).sum()), err
 
-    def cost(self, images, seeds, hyp, thr_px, max_iterations, refine):
-        """Total pixel MSAC cost of a hypothesis over ``images`` (px^2)."""
-        return sum(
-            self.run(i, hyp, thr_px, s, max_iterations, 4, refine)[1]
-            for i, s in zip(images, seeds, strict=True)
-        )
+    def cost(self, images, seeds, hyp, thr_px, max_iterations, refine, bound=np.inf):
+        """Total pixel MSAC cost of a hypothesis over ``images`` (px^2).
+
+        The per-image costs are non-negative and each image's RANSAC has its own seed,
+        so once the running sum exceeds ``bound`` (the best competitor's cost) the
+        hypothesis cannot win: the partial sum, above ``bound``, is returned without
+        posing the remaining images. Comparisons against ``bound`` come out as with the
+        full sum."""
+        total = 0.0
+        for i, s in zip(images, seeds, strict=True):
+            total += self.run(i, hyp, thr_px, s, max_iterations, 4, refine)[1]
+            if total > bound:
+                break
+        return total
 
 
 def _ransac_threshold_rad(hyp: LensHypothesis, thr_px: float) -> float:
@@ -501,7 +509,12 @@ def _focal_scan(problem, images, seeds, hyp, thr_px):
     apart), no pose refinement. Returns ``(hypothesis, cost)`` of the best value."""
     half = np.log(_GRID_RATIO)
     xs = np.log(hyp.f_px) + np.linspace(-half, half, 13)
-    cs = [problem.cost(images, seeds, replace(hyp, f_px=np.exp(x)), thr_px, 64, False) for x in xs]
+    cs: list[float] = []
+    for x in xs:
+        bound = min(cs, default=np.inf)
+        cs.append(
+            problem.cost(images, seeds, replace(hyp, f_px=np.exp(x)), thr_px, 64, False, bound)
+        )
     j = int(np.argmin(cs))
     return replace(hyp, f_px=np.exp(xs[j])), float(cs[j])
 
@@ -542,12 +555,15 @@ def _pp_search(problem, images, seeds, hyp, thr_px, size, quick_images, quick_se
     steps = np.arange(-4, 5) * 0.03
     offsets = [size * [dx, dy] for dx in steps for dy in steps]
     grid = [replace(hyp, principal_point_px=centre + o) for o in offsets]
-    quick = [problem.cost(quick_images, quick_seeds, h, thr_px, 64, False) for h in grid]
-    shortlist = [grid[k] for k in np.argsort(quick)[:3]]
-    scored = [
-        (problem.cost(images, seeds, h, thr_px, 300, True), k, h)
-        for k, h in enumerate([hyp, *shortlist])
-    ]
+    quick: list[float] = []
+    for h in grid:  # only the three best matter: the third best so far bounds the rest
+        bound = sorted(quick)[2] if len(quick) >= 3 else np.inf
+        quick.append(problem.cost(quick_images, quick_seeds, h, thr_px, 64, False, bound))
+    shortlist = [grid[k] for k in np.argsort(quick, kind="stable")[:3]]
+    scored: list[tuple[float, int, LensHypothesis]] = []
+    for k, h in enumerate([hyp, *shortlist]):
+        bound = min((c for c, _, _ in scored), default=np.inf)
+        scored.append((problem.cost(images, seeds, h, thr_px, 300, True, bound), k, h))
     best_cost, _, best = min(scored, key=lambda x: (x[0], x[1]))
     centre = best.principal_point_px
     for dx in (-0.01, 0.0, 0.01):
@@ -555,7 +571,7 @@ def _pp_search(problem, images, seeds, hyp, thr_px, size, quick_images, quick_se
             if dx == 0 and dy == 0:
                 continue
             cand = replace(best, principal_point_px=centre + size * [dx, dy])
-            c = problem.cost(images, seeds, cand, thr_px, 300, True)
+            c = problem.cost(images, seeds, cand, thr_px, 300, True, best_cost)
             if c < best_cost:
                 best, best_cost = cand, c
     return best, best_cost
@@ -823,10 +839,14 @@ def initialize_poses(
         thr = 0.03 * ro
         for m in mappings:
             grid = _focal_grid(m, ro)
-            costs = [
-                problem.cost(coarse_images, coarse_seeds, _family(m, f, pp), thr, 64, False)
-                for f in grid
-            ]
+            costs: list[float] = []
+            for f in grid:  # the best so far bounds the rest (argmin unchanged)
+                bound = min(costs, default=np.inf)
+                costs.append(
+                    problem.cost(
+                        coarse_images, coarse_seeds, _family(m, f, pp), thr, 64, False, bound
+                    )
+                )
             j = int(np.argmin(costs))
             coarse.append((costs[j] / thr**2, _family(m, grid[j], pp), ro))
             say(
@@ -958,7 +978,7 @@ def _refit(problem, images, seeds, hyp, thr, cost, say):
         if refined is None:
             break
         new = refined[0]
-        c_new = problem.cost(images, seeds, new, thr, 300, True)
+        c_new = problem.cost(images, seeds, new, thr, 300, True, 0.98 * best_cost)
         if c_new >= 0.98 * best_cost:
             break
         best, best_cost = new, c_new
