@@ -73,7 +73,7 @@ from .export import (
     kb_project,
     rational_project,
 )
-from .export_rig import _METRES, _best, relative_pose
+from .export_rig import _METRES, _best, fits_exit_status, relative_pose
 from .splined import SplineConfig, splined_project, stereographic_u
 
 logger = logging.getLogger(__name__)
@@ -696,17 +696,4 @@ def run_cli(args) -> int:
     for key, text in result.files.items():
         print(f"wrote {write_bytes_atomic(paths[key], text.encode('utf-8'))}")
     print(result.summary())
-    bad = [
-        cid
-        for cid, fit in result.fits.items()
-        if not (fit.rms_px <= args.max_rms_px) or not fit.converged
-    ]
-    if bad:
-        logger.warning(
-            "camera(s) %s: fit RMS exceeds %g px or the fit did not converge: the exported "
-            "model does not reproduce the calibration",
-            ", ".join(bad),
-            args.max_rms_px,
-        )
-        return 1
-    return 0
+    return fits_exit_status(result.fits, args.max_rms_px)

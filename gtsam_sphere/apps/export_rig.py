@@ -454,17 +454,26 @@ def run_cli(args) -> int:
     path = write_rig_export(result, args.output)
     print(f"wrote {path}")
     print(result.summary())
-    bad = [
-        cid
-        for cid, fit in result.fits.items()
-        if not (fit.rms_px <= args.max_rms_px) or not fit.converged
-    ]
+    return fits_exit_status(result.fits, args.max_rms_px)
+
+
+def fits_exit_status(fits: dict, max_rms_px: float) -> int:
+    """Exit status of an export: 1 (and a warning naming them) when a camera's fit RMS
+    exceeds ``max_rms_px`` (px) or its fit did not converge, else 0.
+
+    Parameters
+    ----------
+    fits : dict of str -> fit
+        Per camera id, objects with ``rms_px`` (px) and ``converged``.
+    max_rms_px : float
+    """
+    bad = [cid for cid, fit in fits.items() if not (fit.rms_px <= max_rms_px) or not fit.converged]
     if bad:
         logger.warning(
             "camera(s) %s: fit RMS exceeds %g px or the fit did not converge: the exported "
             "model does not reproduce the calibration",
             ", ".join(bad),
-            args.max_rms_px,
+            max_rms_px,
         )
         return 1
     return 0
