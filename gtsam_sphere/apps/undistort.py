@@ -20,6 +20,19 @@ down, z forward):
     ``(sin lon cos lat, sin lat, cos lon cos lat)``; ``fov`` is the longitude span.
 ``cylindrical``
     ``lon`` as above, ``f = 1 / s`` px per rad; ray ``(sin lon, (v - (H-1)/2) / f, cos lon)``.
+``epipolar``
+    an equirectangular grid whose poles lie on the x axis (a stereo pair's baseline
+    after :func:`stereo_rectification`): ``lon = (u - (W-1)/2) * s`` is the angle out
+    of the y-z plane, ``lat = (v - (H-1)/2) * s`` the rotation about x; ray
+    ``(sin lon, cos lon sin lat, cos lon cos lat)``. Every row is one plane through the
+    baseline (an epipolar plane), so corresponding points of the two rectified images
+    share a row for any field of view, past 180 deg too (rows span up to 360 deg of
+    ``lat``, columns up to 180 deg of ``lon``).
+
+A stereo pair (``undistort --stereo``): both images are resampled into one rectified
+frame (:func:`stereo_rectification`: x along the baseline, z the mean optical axis
+made orthogonal to it), ``perspective`` (rows are epipolar lines, below 180 deg) or
+``epipolar`` (the whole field of view).
 
 Output pixels whose ray the camera does not see (outside its image, or
 outside its field of view) map to :data:`INVALID` and come out as the border
@@ -40,7 +53,11 @@ from ..core.errors import OptionsError
 from ..core.rays import RayGrid, project_rays
 from ..io.dataset import DatasetError, write_bytes_atomic
 
-KINDS: tuple[str, ...] = ("perspective", "equirectangular", "cylindrical")
+KINDS: tuple[str, ...] = ("perspective", "equirectangular", "cylindrical", "epipolar")
+#: ``--to`` choices of one camera; ``epipolar`` is the stereo pair's equirectangular output
+MONO_KINDS: tuple[str, ...] = KINDS[:3]
+#: ``--to`` of ``undistort --stereo`` -> the output projection of both images
+STEREO_KINDS: dict[str, str] = {"perspective": "perspective", "equirectangular": "epipolar"}
 #: map value of output pixels without a source pixel (outside any input image)
 INVALID = -1.0e4
 #: default horizontal field of view cap of the perspective output (deg)
@@ -138,7 +155,51 @@ def output_rays(
     if kind == "equirectangular":
         lat = y * s
         return np.column_stack([np.sin(lon) * np.cos(lat), np.sin(lat), np.cos(lon) * np.cos(lat)])
+    if kind == "epipolar":
+        lat = y * s
+        return np.column_stack([np.sin(lon), np.cos(lon) * np.sin(lat), np.cos(lon) * np.cos(lat)])
     return np.column_stack([np.sin(lon), y * s, np.cos(lon)])
+
+
+def output_pixels(kind: str, size: tuple[int, int], fov_deg: float, rays: np.ndarray) -> np.ndarray:
+    """Output pixels of rays: the inverse of :func:`output_rays`.
+
+    Parameters
+    ----------
+    kind : str
+        One of ``KINDS``.
+    size : (int, int)
+        Output ``(width, height)`` (px).
+    fov_deg : float
+        As in :func:`output_rays` (degrees).
+    rays : ndarray, shape (N, 3)
+        Output frame (x right, y down, z forward), any length.
+
+    Returns
+    -------
+    uv_px : ndarray, shape (N, 2)
+        NaN for a ray the projection cannot hold (perspective: ``z <= 0``).
+    """
+    if kind not in KINDS:
+        raise ValueError(f"unknown projection {kind!r}; choose from {KINDS}")
+    w, h = int(size[0]), int(size[1])
+    r = np.asarray(rays, float).reshape(-1, 3)
+    cx, cy = (w - 1) / 2.0, (h - 1) / 2.0
+    with np.errstate(invalid="ignore", divide="ignore"):
+        if kind == "perspective":
+            f = _perspective_focal(w, fov_deg)
+            z = np.where(r[:, 2] > 0, r[:, 2], np.nan)
+            return np.column_stack([cx + f * r[:, 0] / z, cy + f * r[:, 1] / z])
+        s = math.radians(float(fov_deg)) / w
+        n = np.linalg.norm(r, axis=1)
+        if kind == "equirectangular":
+            lon = np.arctan2(r[:, 0], r[:, 2])
+            return np.column_stack([cx + lon / s, cy + np.arcsin(r[:, 1] / n) / s])
+        if kind == "epipolar":
+            lat = np.arctan2(r[:, 1], r[:, 2])
+            return np.column_stack([cx + np.arcsin(r[:, 0] / n) / s, cy + lat / s])
+        lon = np.arctan2(r[:, 0], r[:, 2])
+        return np.column_stack([cx + lon / s, cy + r[:, 1] / np.hypot(r[:, 0], r[:, 2]) / s])
 
 
 def _perspective_focal(width: int, fov_deg: float) -> float:
@@ -147,11 +208,26 @@ def _perspective_focal(width: int, fov_deg: float) -> float:
     return (width / 2.0) / math.tan(math.radians(fov_deg) / 2)
 
 
-def camera_extent_deg(camera, n_cols: int = 96) -> tuple[float, float]:
+def camera_extent_deg(
+    camera,
+    n_cols: int = 96,
+    output_from_cam: np.ndarray | None = None,
+    kind: str = "equirectangular",
+) -> tuple[float, float]:
     """Largest ``|longitude|`` and ``|latitude|`` (deg) of the camera's rays over its image.
 
-    Longitude ``atan2(x, z)``, latitude ``asin(y)`` of each unit ray, on a
-    grid of about ``n_cols`` columns; pixels without a ray are skipped.
+    Longitude ``atan2(x, z)``, latitude ``asin(y)`` of each unit ray (``kind``
+    ``"epipolar"``: longitude ``asin(x)``, latitude ``atan2(y, z)``), on a grid of
+    about ``n_cols`` columns; pixels without a ray are skipped.
+
+    Parameters
+    ----------
+    camera : SphereCamera
+    n_cols : int
+    output_from_cam : ndarray, shape (3, 3), optional
+        Rotation of the rays into the output frame first (a rectified stereo frame).
+    kind : str
+        The output projection whose longitude / latitude are meant.
 
     Returns
     -------
@@ -160,13 +236,23 @@ def camera_extent_deg(camera, n_cols: int = 96) -> tuple[float, float]:
     rays = RayGrid(camera, n_cols).rays
     if len(rays) == 0:
         raise ValueError("the camera has no ray anywhere in its image")
-    lon = np.degrees(np.arctan2(rays[:, 0], rays[:, 2]))
-    lat = np.degrees(np.arcsin(np.clip(rays[:, 1], -1, 1)))
+    if output_from_cam is not None:
+        rays = rays @ np.asarray(output_from_cam, float).T
+    if kind == "epipolar":
+        lon = np.degrees(np.arcsin(np.clip(rays[:, 0], -1, 1)))
+        lat = np.degrees(np.arctan2(rays[:, 1], rays[:, 2]))
+    else:
+        lon = np.degrees(np.arctan2(rays[:, 0], rays[:, 2]))
+        lat = np.degrees(np.arcsin(np.clip(rays[:, 1], -1, 1)))
     return float(np.max(np.abs(lon))), float(np.max(np.abs(lat)))
 
 
 def default_geometry(
-    camera, kind: str, fov_deg: float | None = None, size: tuple[int, int] | None = None
+    camera,
+    kind: str,
+    fov_deg: float | None = None,
+    size: tuple[int, int] | None = None,
+    output_from_cam: np.ndarray | None = None,
 ) -> tuple[float, tuple[int, int]]:
     """Field of view and output size used when not given.
 
@@ -176,6 +262,9 @@ def default_geometry(
     ``size``: width of the camera image; height the camera's for
     ``perspective``, else enough rows for its latitude span (square pixels
     on the sphere; cylindrical capped at :data:`CYLINDRICAL_MAX_LAT_DEG`).
+    ``epipolar``: longitude span capped at 180, latitude at 360 deg.
+    ``camera`` may be a list of cameras with ``output_from_cam`` a list of
+    rotations (a stereo pair): the extents are their union.
 
     Returns
     -------
@@ -185,17 +274,24 @@ def default_geometry(
     """
     if kind not in KINDS:
         raise ValueError(f"unknown projection {kind!r}; choose from {KINDS}")
-    lon, lat = camera_extent_deg(camera)
+    cams = list(camera) if isinstance(camera, (list, tuple)) else [camera]
+    rots = list(output_from_cam) if isinstance(camera, (list, tuple)) else [output_from_cam]
+    if output_from_cam is None:
+        rots = [None] * len(cams)
+    ext = np.array([camera_extent_deg(c, 96, r, kind) for c, r in zip(cams, rots)])
+    lon, lat = (float(v) for v in ext.max(axis=0))
     if fov_deg is None:
-        fov_deg = min(2 * lon, 360.0)
+        fov_deg = min(2 * lon, 180.0 if kind == "epipolar" else 360.0)
         if kind == "perspective":
             fov_deg = min(fov_deg, PERSPECTIVE_MAX_FOV_DEG)
     if size is None:
-        w = int(camera.width)
+        w = max(int(c.width) for c in cams)
         if kind == "perspective":
-            h = int(camera.height)
+            h = max(int(c.height) for c in cams)
         elif kind == "equirectangular":
             h = int(math.ceil(w * min(2 * lat, 180.0) / fov_deg))
+        elif kind == "epipolar":
+            h = int(math.ceil(w * min(2 * lat, 360.0) / fov_deg))
         else:
             f = w / math.radians(fov_deg)
             h = int(math.ceil(2 * f * math.tan(math.radians(min(lat, CYLINDRICAL_MAX_LAT_DEG)))))
@@ -211,6 +307,7 @@ def remap_tables(
     step: int | None = None,
     tol_px: float = 0.01,
     chunk: int = 262144,
+    output_from_cam: np.ndarray | None = None,
 ) -> RemapTables:
     """Build ``cv2.remap`` tables from an output projection to the camera's raw image.
 
@@ -237,20 +334,28 @@ def remap_tables(
         Interpolation tolerance (input px) for ``step > 1``.
     chunk : int
         Output pixels per batch (memory).
+    output_from_cam : ndarray, shape (3, 3), optional
+        Rotation from the camera frame to the output frame (a rectified stereo
+        frame, :func:`stereo_rectification`); default the identity.
 
     Returns
     -------
     RemapTables
     """
-    fov_deg, size = default_geometry(camera, kind, fov_deg, size)
+    if output_from_cam is not None:
+        output_from_cam = np.asarray(output_from_cam, float)
+        if output_from_cam.shape != (3, 3):
+            raise ValueError(f"output_from_cam must have shape (3, 3), got {output_from_cam.shape}")
+    fov_deg, size = default_geometry(camera, kind, fov_deg, size, output_from_cam)
     w, h = size
     if w <= 0 or h <= 0:
         raise ValueError(f"output size must be positive, got {w}x{h}")
     if kind == "perspective":
         f = _perspective_focal(w, fov_deg)
     else:
-        if not 0 < fov_deg <= 360:
-            raise ValueError(f"{kind} longitude span must be in (0, 360] deg, got {fov_deg}")
+        span = 180.0 if kind == "epipolar" else 360.0
+        if not 0 < fov_deg <= span:
+            raise ValueError(f"{kind} longitude span must be in (0, {span:g}] deg, got {fov_deg}")
         f = w / math.radians(fov_deg)
     if step is None:
         step = max(1, int(math.ceil(math.sqrt(w * h / EXACT_PIXELS))))
@@ -264,6 +369,8 @@ def remap_tables(
         out = np.full((len(uv), 2), np.nan)
         for s in range(0, len(uv), chunk):
             rays = output_rays(kind, size, fov_deg, uv[s : s + chunk])
+            if output_from_cam is not None:
+                rays = rays @ output_from_cam  # cam_from_output @ ray, row-wise
             out[s : s + chunk] = project_rays(camera, rays, grid=grid)
         return out
 
@@ -301,6 +408,142 @@ def remap_tables(
     return RemapTables(
         map_x, map_y, kind, float(fov_deg), K, float(np.mean(valid)), step, float(error)
     )
+
+
+@dataclass
+class StereoRectification:
+    """The common frame of a rectified stereo pair.
+
+    Attributes
+    ----------
+    left, right : str
+        Camera ids.
+    rect_from_left, rect_from_right : ndarray, shape (3, 3)
+        Rotations from each camera's frame to the rectified frame (x along the
+        baseline from the left to the right camera, z the mean optical axis made
+        orthogonal to it, y = z x x).
+    baseline : float
+        Distance between the two perspective centres (the calibration's units).
+    """
+
+    left: str
+    right: str
+    rect_from_left: np.ndarray
+    rect_from_right: np.ndarray
+    baseline: float
+
+
+def stereo_rectification(calib, left: str, right: str) -> StereoRectification:
+    """Rectifying rotations of two cameras of a rig (``calibration@2``).
+
+    In the rectified frame the baseline is the x axis, so every plane through it
+    (an epipolar plane) is a row of the ``perspective`` and ``epipolar`` outputs.
+    The z axis is the mean of the two optical axes made orthogonal to the baseline
+    (the left camera's axis when the two point in opposite directions).
+
+    Parameters
+    ----------
+    calib : RigCalibration
+        Its ``cam_from_rig[id] = (R, t)``: ``p_cam = R p_rig + t``.
+    left, right : str
+        Camera ids.
+
+    Returns
+    -------
+    StereoRectification
+
+    Raises
+    ------
+    OptionsError
+        An unknown camera, the same camera twice, or two cameras at one point (no
+        baseline).
+    """
+    ids = list(getattr(calib, "camera_ids", []))
+    for cid in (left, right):
+        if cid not in ids:
+            raise OptionsError(f"stereo camera {cid!r}: no such camera (cameras {ids})")
+    if left == right:
+        raise OptionsError(f"stereo needs two different cameras, got {left!r} twice")
+    Rl, tl = (np.asarray(v, float) for v in calib.cam_from_rig[left])
+    Rr, tr = (np.asarray(v, float) for v in calib.cam_from_rig[right])
+    R = Rr @ Rl.T  # right_from_left: p_r = R p_l + t
+    t = tr - R @ tl
+    centre = -R.T @ t  # the right camera's centre in the left frame
+    baseline = float(np.linalg.norm(centre))
+    if not baseline > 1e-9:
+        raise OptionsError(f"cameras {left!r} and {right!r} share one centre: no baseline")
+    x = centre / baseline
+    z = np.array([0.0, 0.0, 1.0]) + R.T @ np.array([0.0, 0.0, 1.0])
+    if np.linalg.norm(z - (z @ x) * x) < 1e-6:  # opposite axes (or both along the baseline)
+        z = np.array([0.0, 0.0, 1.0])
+    z = z - (z @ x) * x
+    if np.linalg.norm(z) < 1e-6:  # the left axis along the baseline: any perpendicular
+        z = np.cross(x, [0.0, 1.0, 0.0]) if abs(x[1]) < 0.9 else np.cross(x, [1.0, 0.0, 0.0])
+    z = z / np.linalg.norm(z)
+    y = np.cross(z, x)
+    rect_from_left = np.stack([x, y, z])
+    return StereoRectification(left, right, rect_from_left, rect_from_left @ R.T, baseline)
+
+
+def rectified_pixels(
+    camera, rect_from_cam: np.ndarray, tables: RemapTables, uv_px: np.ndarray
+) -> np.ndarray:
+    """Where raw pixels of a camera land in its rectified image.
+
+    Parameters
+    ----------
+    camera : SphereCamera
+    rect_from_cam : ndarray, shape (3, 3)
+        From :class:`StereoRectification`.
+    tables : RemapTables
+        The rectified image's tables (their projection, field of view and size).
+    uv_px : ndarray, shape (N, 2)
+        Raw pixels.
+
+    Returns
+    -------
+    uv_rect_px : ndarray, shape (N, 2)
+        NaN where the pixel has no ray.
+    """
+    rays = camera.unproject(np.asarray(uv_px, float)) @ np.asarray(rect_from_cam, float).T
+    return output_pixels(tables.kind, tables.size, tables.fov_deg, rays)
+
+
+def stereo_remap_tables(
+    calib,
+    left: str,
+    right: str,
+    kind: str = "epipolar",
+    fov_deg: float | None = None,
+    size: tuple[int, int] | None = None,
+) -> tuple[StereoRectification, RemapTables, RemapTables]:
+    """``cv2.remap`` tables rectifying a stereo pair of a rig into one frame.
+
+    Parameters
+    ----------
+    calib : RigCalibration
+    left, right : str
+        Camera ids.
+    kind : str
+        ``"perspective"`` or ``"epipolar"`` (the whole field of view; see the
+        module docstring).
+    fov_deg : float, optional
+        Longitude span (deg); default the union of the two cameras' fields.
+    size : (int, int), optional
+        Output ``(width, height)`` px of both images; default from the cameras.
+
+    Returns
+    -------
+    (rectification, left_tables, right_tables)
+    """
+    if kind not in ("perspective", "epipolar"):
+        raise ValueError(f"a stereo pair is rectified to perspective or epipolar, not {kind!r}")
+    rect = stereo_rectification(calib, left, right)
+    cams = [calib.cameras[left], calib.cameras[right]]
+    rots = [rect.rect_from_left, rect.rect_from_right]
+    fov_deg, size = default_geometry(cams, kind, fov_deg, size, rots)
+    tables = [remap_tables(c, kind, fov_deg, size, output_from_cam=r) for c, r in zip(cams, rots)]
+    return rect, tables[0], tables[1]
 
 
 def _curved_nodes(nodes: np.ndarray, n_rows: int, n_cols: int, tol_px: float) -> np.ndarray:
@@ -434,7 +677,27 @@ def add_cli_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="ID",
         help="rig calibration (calibration@2): the camera that took the image",
     )
-    parser.add_argument("--to", required=True, choices=KINDS, dest="kind", help="projection")
+    parser.add_argument(
+        "--to",
+        required=True,
+        choices=MONO_KINDS,
+        dest="kind",
+        help="projection (with --stereo: perspective, or equirectangular with the baseline "
+        "as its polar axis, rows = epipolar planes)",
+    )
+    parser.add_argument(
+        "--stereo",
+        default=None,
+        metavar="IMAGE",
+        help="rig calibration: rectify a stereo pair; IMAGE is the second camera's image "
+        "(--camera and --stereo-camera name the two cameras, default the rig's first two)",
+    )
+    parser.add_argument(
+        "--stereo-camera", default=None, metavar="ID", help="--stereo: the second camera"
+    )
+    parser.add_argument(
+        "--stereo-output", default=None, metavar="OUT", help="--stereo: the second output image"
+    )
     parser.add_argument(
         "--fov-deg",
         type=float,
@@ -449,13 +712,16 @@ def add_cli_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run_cli(args) -> int:
     """Run ``gtsam-sphere undistort``; 0 on success (bad input raises an ``InputError``)."""
-    import cv2
-
     from ..io.calibration import load_calibration
 
     calib = load_calibration(args.calibration)
     if not Path(args.image).is_file():
         raise DatasetError(f"{args.image}: no such image file")
+    if getattr(args, "stereo", None) is not None:
+        return _run_stereo(args, calib)
+    for option in ("stereo_camera", "stereo_output"):
+        if getattr(args, option, None) is not None:
+            raise OptionsError(f"--{option.replace('_', '-')} applies to --stereo only")
     camera_id = getattr(args, "camera", None)
     if hasattr(calib, "camera_ids"):  # calibration@2: one camera of the rig
         if camera_id is None:
@@ -475,14 +741,7 @@ def run_cli(args) -> int:
         )
     else:
         cam = calib.camera
-    image = cv2.imread(str(args.image), cv2.IMREAD_UNCHANGED)
-    if image is None:
-        raise DatasetError(f"{args.image}: not an image cv2 can read")
-    if image.shape[1] != cam.width or image.shape[0] != cam.height:
-        raise DatasetError(
-            f"{args.image}: image is {image.shape[1]}x{image.shape[0]} px but calibration "
-            f"{args.calibration} is for {cam.width}x{cam.height} px"
-        )
+    image = _read_image(args.image, cam, args.calibration)
     try:
         tables = remap_tables(cam, args.kind, args.fov_deg, _parse_size(args.size))
     except ValueError as exc:
@@ -494,4 +753,56 @@ def run_cli(args) -> int:
         f"wrote {path}: {args.kind} {w}x{h} px, field of view {tables.fov_deg:.1f} deg, "
         f"{100 * tables.valid_fraction:.1f}% of the output has a source pixel"
     )
+    return 0
+
+
+def _read_image(path, cam, calibration_path) -> np.ndarray:
+    """The image at ``path``, checked against the camera's size (``DatasetError`` if not)."""
+    import cv2
+
+    if not Path(path).is_file():
+        raise DatasetError(f"{path}: no such image file")
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise DatasetError(f"{path}: not an image cv2 can read")
+    if image.shape[1] != cam.width or image.shape[0] != cam.height:
+        raise DatasetError(
+            f"{path}: image is {image.shape[1]}x{image.shape[0]} px but calibration "
+            f"{calibration_path} is for {cam.width}x{cam.height} px"
+        )
+    return image
+
+
+def _run_stereo(args, calib) -> int:
+    """``undistort --stereo``: both images of a rig's pair into one rectified frame."""
+    if not hasattr(calib, "camera_ids"):
+        raise OptionsError(f"--stereo needs a rig calibration (calibration@2): {args.calibration}")
+    if args.stereo_output is None:
+        raise OptionsError("--stereo needs --stereo-output OUT for the second image")
+    ids = calib.camera_ids
+    if len(ids) < 2:
+        raise OptionsError(f"--stereo: {args.calibration} has one camera ({ids})")
+    left = args.camera if args.camera is not None else ids[0]
+    right = args.stereo_camera
+    if right is None:
+        right = next(c for c in ids if c != left)
+    rect, lt, rt = stereo_remap_tables(
+        calib, left, right, STEREO_KINDS[args.kind], args.fov_deg, _parse_size(args.size)
+    )
+    images = [
+        _read_image(p, calib.cameras[c], args.calibration)
+        for p, c in ((args.image, left), (args.stereo, right))
+    ]
+    paths = [
+        write_image_atomic(out, apply_remap(img, t))
+        for out, img, t in ((args.output, images[0], lt), (args.stereo_output, images[1], rt))
+    ]
+    w, h = lt.size
+    print(
+        f"rectified {left} / {right} (baseline {rect.baseline:.4g} {calib.units}): "
+        f"{STEREO_KINDS[args.kind]} {w}x{h} px, field of view {lt.fov_deg:.1f} deg; "
+        f"rows are epipolar planes"
+    )
+    for path, t in zip(paths, (lt, rt)):
+        print(f"wrote {path}: {100 * t.valid_fraction:.1f}% of the output has a source pixel")
     return 0
