@@ -214,9 +214,10 @@ def test_any_grouping_linearises_like_single_factors():
     groups = [np.setdiff1d(g, np.concatenate(two)) for g in groups] + two
     groups = [g for g in groups if len(g)]
     blocks = ProjectionBlocks(scene.camera, scene.uv_px, pk, lk, noise, groups=groups)
-    patterns = [b.pattern for b in blocks._blocks]
-    assert any(b.pattern[0] > 1 for b in blocks._blocks)  # several landmarks in a block
-    assert any(len(b.poses) < b.end - b.start for b in blocks._blocks)  # a pose seen twice
+    engine_blocks = blocks.engine._blocks  # keys per kind: poses, landmarks
+    patterns = [b.shape for b in engine_blocks]
+    assert any(len(b.keys[1]) > 1 for b in engine_blocks)  # several landmarks in a block
+    assert any(len(b.keys[0]) < b.end - b.start for b in engine_blocks)  # a pose seen twice
     assert len(set(patterns)) < len(patterns)  # shared patterns
     graph = gtsam.NonlinearFactorGraph()
     factors = blocks.factors()
