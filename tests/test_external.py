@@ -214,10 +214,11 @@ def test_any_grouping_linearises_like_single_factors():
     groups = [np.setdiff1d(g, np.concatenate(two)) for g in groups] + two
     groups = [g for g in groups if len(g)]
     blocks = ProjectionBlocks(scene.camera, scene.uv_px, pk, lk, noise, groups=groups)
-    engine_blocks = blocks.engine._blocks  # keys per kind: poses, landmarks
-    patterns = [b.shape for b in engine_blocks]
-    assert any(len(b.keys[1]) > 1 for b in engine_blocks)  # several landmarks in a block
-    assert any(len(b.keys[0]) < b.end - b.start for b in engine_blocks)  # a pose seen twice
+    engine = blocks.engine
+    keys = [engine.block_keys(g) for g in range(engine.n_blocks)]  # poses, landmarks
+    patterns = [b.shape for b in engine._blocks]
+    assert any(len(k[1]) > 1 for k in keys)  # several landmarks in a block
+    assert any(len(k[0]) < len(g) for k, g in zip(keys, blocks.groups))  # a pose seen twice
     assert len(set(patterns)) < len(patterns)  # shared patterns
     graph = gtsam.NonlinearFactorGraph()
     factors = blocks.factors()

@@ -264,27 +264,31 @@ class Kind:
                         raise ValueError(f"vector key {k} holds {v.shape}, expected {self.width}")
                     out[i] = v
             return out
-        sub = None
-        if _VALUES_EXTRACT:
-            try:
-                sub = values.extract(keys)
-            except RuntimeError:  # a key is missing: the others one by one
-                sub = None
-        if sub is not None:
-            if self.name == "pose3":
-                rows = gtsam.utilities.extractPose3(sub)
-            else:
-                rows = gtsam.utilities.extractPoint3(sub)
-            if rows.shape[0] != len(keys):
-                raise TypeError("pose keys must hold Pose3 values and target keys Point3 values")
-            if self.name == "point3":
-                return np.asarray(rows, float).reshape(-1, 3)
-            out[:, _POSE_COLUMNS] = rows
-            out[:, 12:] = (0.0, 0.0, 0.0, 1.0)
+        if not _VALUES_EXTRACT:
+            for i, k in enumerate(keys):
+                if values.exists(k):
+                    out[i] = np.frombuffer(self.key_bytes(values, k), float)
             return out
-        for i, k in enumerate(keys):
-            if values.exists(k):
-                out[i] = np.frombuffer(self.key_bytes(values, k), float)
+        have = slice(None)
+        try:
+            sub = values.extract(keys)
+        except RuntimeError:  # some keys are absent: extract those present
+            arr = np.asarray(keys, np.uint64)
+            have = np.isin(arr, np.asarray(values.keys(), np.uint64))
+            sub = values.extract(arr[have].tolist())
+        if self.name == "pose3":
+            rows = gtsam.utilities.extractPose3(sub)
+        else:
+            rows = gtsam.utilities.extractPoint3(sub)
+        if rows.shape[0] != sub.size():
+            raise TypeError("pose keys must hold Pose3 values and target keys Point3 values")
+        if self.name == "point3":
+            out[have] = np.asarray(rows, float).reshape(-1, 3)
+            return out
+        T = np.empty((rows.shape[0], 16))
+        T[:, _POSE_COLUMNS] = rows
+        T[:, 12:] = (0.0, 0.0, 0.0, 1.0)
+        out[have] = T
         return out
 
 
@@ -532,18 +536,16 @@ class _Block:
 
     start: int
     end: int
-    keys: list  # per kind: the block's keys, in the order given
-    index: list  # per kind: (m,) the set-level row of each key of ``keys``
-    local: list  # per kind: (m,) each observation's slot in ``keys`` (-1: none)
-    factor_keys: list
-    views: list  # (2m, cols) Fortran views of the buffer, one per factor key
+    index: int  # in the engine
     shape: tuple  # (2m, cols...): blocks of one shape share a gtsam.JacobianVector
     offset: int  # of its first view in the buffer
     size: int  # numbers of its views
-    offsets: list  # of each view in the buffer
-    cols: list  # of each view
     e_cost: np.ndarray  # (2m,) view of the cost residuals
     e_lin: np.ndarray  # (2m,) view of the IRLS residuals
+    keys: list | None = None  # its factor keys, once asked for
+    views: list | None = None  # (2m, cols) Fortran views of the buffer, one per factor key
+    native: gtsam.JacobianVector | None = None  # that of its shape
+    copies: list | None = None  # (view of native, view of the buffer) per factor key
 
 
 class FactorEngine:
@@ -566,110 +568,92 @@ class FactorEngine:
         alone), ``full_passes``.
     """
 
-    def __init__(self, model, blocks, whitener: Whitener):
+    def __init__(self, model, sizes, counts, keys, local, whitener: Whitener):
         self.model = model
         self.whitener = whitener
         kinds = model.kinds
         self.kinds = kinds
         nk = len(kinds)
-        sizes = [len(local[0]) for _, local in blocks]
-        self.n = n = int(sum(sizes))
+        sizes = np.asarray(sizes, np.intp).reshape(-1)
+        G = len(sizes)
+        counts = np.asarray(counts, np.intp).reshape(G, nk)
+        keys = [np.asarray(k, np.int64).reshape(-1) for k in keys]
+        local = [np.asarray(loc, np.intp).reshape(-1) for loc in local]
+        self.n = n = int(sizes.sum())
         starts = np.r_[0, np.cumsum(sizes)].astype(np.intp)
         self._start = starts
-        self._block_of = np.repeat(np.arange(len(blocks)), sizes)
-        self.keys = [sorted({int(k) for keys, _ in blocks for k in keys[q]}) for q in range(nk)]
-        sorted_keys = [np.array(k, np.int64) for k in self.keys]
-        self.obs = []  # per kind: (n,) set-level row of each observation's variable, -1 none
+        self._block_of = np.repeat(np.arange(G), sizes)
+        k_in_block = np.arange(n) - starts[self._block_of]  # observation's row in its block
+        key_start = np.vstack([np.zeros((1, nk), np.intp), np.cumsum(counts, 0)])  # (G+1, nk)
+        self._key_start = key_start
+        self._cat = keys
+        self._local = local
+        self.keys, self.obs = [], []  # set-level sorted keys; (n,) row of each observation's
         for q in range(nk):
-            parts = []
-            for keys, local in blocks:
-                arr = np.array([int(k) for k in keys[q]] + [0], np.int64)
-                loc = np.asarray(local[q], np.intp)
-                parts.append(np.where(loc >= 0, np.searchsorted(sorted_keys[q], arr[loc]), -1))
-            self.obs.append(np.concatenate(parts).astype(np.intp) if parts else np.zeros(0, int))
-        # column of kind q in the model's Jacobian
-        col0, c = [], 0
-        for kind in kinds:
-            col0.append(c)
-            c += kind.dim
+            uniq = np.unique(keys[q])
+            self.keys.append(uniq.tolist())
+            row = np.searchsorted(uniq, keys[q])
+            loc = local[q]
+            at = np.where(loc >= 0, key_start[self._block_of, q] + loc, 0)
+            obs = np.where(loc >= 0, row[at], -1) if len(row) else np.full(n, -1)
+            self.obs.append(obs.astype(np.intp))
+        # the buffer: per block, per factor key (kinds in key_order, keys in the order
+        # given) a (2m, dim) Fortran-ordered block, blocks and keys one after the other
+        order = list(model.key_order)
+        self._order = order
+        dims = np.array([kinds[q].dim for q in order], np.intp)
+        per_block = (2 * sizes)[:, None] * (counts[:, order] * dims)  # numbers per kind
+        block_size = per_block.sum(1)
+        block_off = np.r_[0, np.cumsum(block_size)][:-1]
+        kind_off = block_off[:, None] + np.c_[np.zeros(G, np.intp), np.cumsum(per_block, 1)[:, :-1]]
+        size = int(block_size.sum())
         # buffer position of d(e_a)/d(column c) of observation o at pos[a, c, o]
-        C = model.columns
-        pos = np.empty((2, C, n), np.intp)
+        col0 = np.r_[0, np.cumsum([kind.dim for kind in kinds])][:-1]
+        pos = np.empty((2, model.columns, n), np.intp)
+        rows_of = (2 * sizes)[self._block_of]  # rows of each observation's block
+        r = 2 * k_in_block + np.arange(2)[:, None, None]  # (2, 1, n)
+        trash = 0
+        for j, q in enumerate(order):
+            d = kinds[q].dim
+            loc = local[q]
+            where = kind_off[self._block_of, j] + np.maximum(loc, 0) * rows_of * d
+            at = where + rows_of * np.arange(d)[:, None] + r
+            none = loc < 0
+            if none.any():  # observations without a variable of this kind: a trash area
+                trash_at = size + trash + d * np.arange(2)[:, None, None] + np.arange(d)[:, None]
+                at[:, :, none] = trash_at
+                trash += 2 * d
+            pos[:, col0[q] : col0[q] + d] = at
+        self._size = size
+        self.buf = np.zeros(size + trash)
+        self.pos = pos
         self._e_cost = np.zeros(2 * n)
         self._e_lin = np.zeros(2 * n)
         self._e_px = np.zeros((n, 2))
         self._blocks: list[_Block] = []
-        size = 0
-        for g, (keys, local) in enumerate(blocks):
-            s, e = int(starts[g]), int(starts[g + 1])
-            m = e - s
-            rows = 2 * m
-            offsets, cols, fkeys, first = [], [], [], {}
-            o = size
-            for q in model.key_order:
-                first[q] = len(offsets)
-                for k in keys[q]:
-                    offsets.append(o)
-                    cols.append(kinds[q].dim)
-                    fkeys.append(int(k))
-                    o += rows * kinds[q].dim
-            r = 2 * np.arange(m) + np.arange(2)[:, None, None]  # (2, 1, m)
-            for q in range(nk):
-                loc = np.asarray(local[q], np.intp)
-                d = kinds[q].dim
-                col = rows * np.arange(d)[:, None]
-                if len(keys[q]):
-                    base = np.array(offsets[first[q] : first[q] + len(keys[q])])
-                    where = base[np.maximum(loc, 0)]
-                else:
-                    where = np.zeros(m, np.intp)
-                pos[:, col0[q] : col0[q] + d, s:e] = where + col + r
-            block_size = o - size
+        for g, (s, e, c, o, z) in enumerate(
+            zip(
+                starts[:-1].tolist(),
+                starts[1:].tolist(),
+                counts[:, order].tolist(),
+                block_off.tolist(),
+                block_size.tolist(),
+            )
+        ):
+            shape = (2 * (e - s), *[d for d, k in zip(dims.tolist(), c) for _ in range(k)])
             self._blocks.append(
                 _Block(
-                    s,
-                    e,
-                    [[int(k) for k in keys[q]] for q in range(nk)],
-                    [
-                        np.searchsorted(sorted_keys[q], np.array(keys[q], np.int64))
-                        for q in range(nk)
-                    ],
-                    [np.asarray(local[q], np.intp) for q in range(nk)],
-                    fkeys,
-                    [],
-                    (rows, *cols),
-                    size,
-                    block_size,
-                    offsets,
-                    cols,
-                    self._e_cost[2 * s : 2 * e],
-                    self._e_lin[2 * s : 2 * e],
+                    s, e, g, shape, o, z, self._e_cost[2 * s : 2 * e], self._e_lin[2 * s : 2 * e]
                 )
             )
-            size = o
-        # columns of observations without a variable of a kind go to a trash area
-        trash = 0
-        for q in range(nk):
-            none = self.obs[q] < 0
-            if none.any():
-                d = kinds[q].dim
-                at = size + trash + d * np.arange(2)[:, None, None] + np.arange(d)[:, None]
-                pos[:, col0[q] : col0[q] + d, none] = at
-                trash += 2 * d
-        self._size = size
-        self.buf = np.zeros(size + trash)
-        self.pos = pos
-        for b in self._blocks:
-            b.views = [
-                self.buf[o : o + c * b.shape[0]].reshape(c, b.shape[0]).T
-                for o, c in zip(b.offsets, b.cols)
-            ]
         self._natives: dict[tuple, tuple] = {}
         # the cache: variables it was computed at, validity per block and mode
         self._X = [np.full((len(self.keys[q]), kinds[q].width), np.nan) for q in range(nk)]
-        self._valid_cost = np.zeros(len(blocks), bool)
-        self._valid_lin = np.zeros(len(blocks), bool)
-        self._sig = [None] * len(blocks)  # bytes of known hits
+        self._valid_cost = np.zeros(G, bool)
+        self._valid_lin = np.zeros(G, bool)
+        # the variables of the stored results (a Values), and per block its keys' part
+        self._snapshot: gtsam.Values | None = None
+        self._snap_block: list[gtsam.Values | None] = [None] * G
         self._spent_s = 0.0  # on single blocks since the last full pass
         self._full_pass_s = 2e-6 * n  # estimate until measured
         rng = np.random.default_rng(0)
@@ -683,7 +667,42 @@ class FactorEngine:
         self._ready: list[object | None] = [None, None]
         self.stats = {"hits": 0, "single": 0, "full_passes": 0}
 
+    @classmethod
+    def from_blocks(cls, model, blocks, whitener: Whitener) -> FactorEngine:
+        """An engine from a list of blocks.
+
+        Parameters
+        ----------
+        model : ProjectionModel
+        blocks : list of (list of list of int, list of ndarray of int)
+            Per block, per kind of ``model.kinds``: the block's keys (any order) and
+            each observation's slot in them (m,), -1 for none.
+        whitener : Whitener
+        """
+        nk = len(model.kinds)
+        sizes = [len(local[0]) for _, local in blocks]
+        counts = [[len(keys[q]) for q in range(nk)] for keys, _ in blocks]
+        keys = [np.array([int(k) for ks, _ in blocks for k in ks[q]], np.int64) for q in range(nk)]
+        local = [
+            np.concatenate([np.asarray(loc[q], np.intp).reshape(-1) for _, loc in blocks])
+            for q in range(nk)
+        ]
+        return cls(model, sizes, counts, keys, local, whitener)
+
     # ---------------------------------------------------------------- public
+
+    def block_keys(self, g: int) -> list[list[int]]:
+        """Block ``g``'s keys per kind of ``model.kinds``, in the order given."""
+        a, b = self._key_start[g], self._key_start[g + 1]
+        return [self._cat[q][a[q] : b[q]].tolist() for q in range(len(self.kinds))]
+
+    def factor_keys(self, g: int) -> list[int]:
+        """Block ``g``'s factor keys: per kind in ``model.key_order``, its keys."""
+        b = self._blocks[g]
+        if b.keys is None:
+            keys = self.block_keys(g)
+            b.keys = [k for q in self._order for k in keys[q]]
+        return b.keys
 
     @property
     def n_blocks(self) -> int:
@@ -699,7 +718,7 @@ class FactorEngine:
         """
         b = self._blocks[g]
         model = gtsam.noiseModel.Unit.Create(b.shape[0])
-        return gtsam.CustomFactor(model, b.factor_keys, self.callback(g))
+        return gtsam.CustomFactor(model, self.factor_keys(g), self.callback(g))
 
     def residuals_px(self, values: gtsam.Values, g: int | None = None) -> np.ndarray:
         """Unweighted residuals (px) of block ``g`` (m, 2), or of all (n, 2), engine order."""
@@ -736,10 +755,9 @@ class FactorEngine:
                             return b.e_cost
                     elif ready[1] is trusted[1] and valid_lin[g] and type(H) is native_type:
                         stats["hits"] += 1
-                        native, targets = self._native(b)
-                        for target, view in zip(targets, b.views):
-                            np.copyto(target, view)
-                        H[:] = native  # one C++ copy of all blocks
+                        for target, view in b.copies or self._copies(b):
+                            target[...] = view
+                        H[:] = b.native  # one C++ copy of all blocks
                         return b.e_lin
             _, e_cost, e_lin, views = self._result(g, values, H is not None)
             if H is None:
@@ -749,11 +767,28 @@ class FactorEngine:
 
         return evaluate
 
+    def _views(self, b: _Block) -> list:
+        """Block ``b``'s Jacobian blocks: (2m, dim) Fortran views of the buffer, per key."""
+        rows, at, views = b.shape[0], b.offset, []
+        for c in b.shape[1:]:
+            views.append(self.buf[at : at + c * rows].reshape(c, rows).T)
+            at += c * rows
+        b.views = views
+        return views
+
+    def _copies(self, b: _Block) -> list:
+        """Block ``b``'s (view of its native, view of the buffer) pairs, made on first use."""
+        native, targets = self._native(b)
+        b.native = native
+        b.copies = list(zip(targets, b.views or self._views(b)))
+        return b.copies
+
     def _native(self, b: _Block):
         """The ``gtsam.JacobianVector`` of ``b``'s shape and writable numpy views of it."""
         native = self._natives.get(b.shape)
         if native is None:
-            vec = gtsam.JacobianVector([np.zeros(v.shape, order="F") for v in b.views])
+            shapes = [(b.shape[0], c) for c in b.shape[1:]]
+            vec = gtsam.JacobianVector([np.zeros(shape, order="F") for shape in shapes])
             native = self._natives[b.shape] = (vec, [vec[q] for q in range(len(vec))])
         return native
 
@@ -781,35 +816,33 @@ class FactorEngine:
                     self._full_pass(values, linear or trusted[2], trusted[1])
                 if valid[g]:
                     self.stats["hits"] += 1
-                    return self._e_px[rows], b.e_cost, b.e_lin, b.views
-        # the block's variables, bit for bit, in the factor's key order
-        parts = []
-        for q in self.model.key_order:
-            kind = self.kinds[q]
-            parts += [kind.key_bytes(values, k) for k in b.keys[q]]
-        sig = b"".join(parts)
+                    return self._e_px[rows], b.e_cost, b.e_lin, b.views or self._views(b)
         with self._lock:
-            hit = self._hit(g, b, sig, linear)
+            if not _VALUES_EXTRACT:  # no cheap exact check of a block's variables
+                return self._single(b, values, linear)
+            hit = self._hit(g, b, values, linear)
             if not hit and self._want_full_pass(values, linear):
                 self._full_pass(values, linear)
-                hit = self._hit(g, b, sig, linear)
+                hit = self._hit(g, b, values, linear)
             if hit:
                 self.stats["hits"] += 1
-                return self._e_px[rows], b.e_cost, b.e_lin, b.views
-            return self._single(b, sig, linear)
+                return self._e_px[rows], b.e_cost, b.e_lin, b.views or self._views(b)
+            return self._single(b, values, linear)
 
-    def _hit(self, g: int, b: _Block, sig: bytes, linear: bool) -> bool:
-        """The cache holds block ``g`` computed at exactly the variables ``sig``."""
+    def _hit(self, g: int, b: _Block, values, linear: bool) -> bool:
+        """The cache holds block ``g`` computed at exactly its variables in ``values``.
+
+        ``Values.equals`` with tolerance 0 on the block's keys: same keys, same types,
+        IEEE-equal numbers (blocks with a non-finite variable, which ``equals`` matches
+        loosely, are never stored).
+        """
         if not (self._valid_lin[g] if linear else self._valid_cost[g]):
             return False
-        known = self._sig[g]
-        if known is not None:
-            return sig == known
-        stored = b"".join(self._X[q][b.index[q]].tobytes() for q in self.model.key_order)
-        if sig == stored:
-            self._sig[g] = sig
-            return True
-        return False
+        own = self._snap_block[g]
+        keys = b.keys or self.factor_keys(g)
+        if own is None:
+            own = self._snap_block[g] = self._snapshot.extract(keys)
+        return values.extract(keys).equals(own, 0.0)
 
     def _want_full_pass(self, values, linear: bool) -> bool:
         """On a miss: will most blocks miss in this pass (a batch optimiser's step)?
@@ -832,22 +865,18 @@ class FactorEngine:
             return True
         return self._spent_s >= self._full_pass_s
 
-    def _single(self, b: _Block, sig: bytes, linear: bool):
-        """Evaluate one block from its variables ``sig`` (not stored)."""
+    def _single(self, b: _Block, values, linear: bool):
+        """Evaluate one block at ``values`` (not stored)."""
         t0 = time.perf_counter()
-        flat = np.frombuffer(sig, dtype=float)
-        tables: list = [None] * len(self.kinds)
-        at = 0
-        for q in self.model.key_order:
-            w = self.kinds[q].width
-            count = len(b.keys[q])
-            tables[q] = flat[at : at + w * count].reshape(count, w)
-            at += w * count
-        for q in range(len(self.kinds)):
-            if tables[q] is None:
-                tables[q] = np.zeros((0, self.kinds[q].width))
+        tables = [
+            np.array(
+                [np.frombuffer(kind.key_bytes(values, k), float) for k in keys], float
+            ).reshape(len(keys), kind.width)
+            for kind, keys in zip(self.kinds, self.block_keys(b.index))
+        ]
         rows = slice(b.start, b.end)
-        e_px, ctx = self.model.residual(tables, b.local, rows, linear)
+        local = [loc[b.start : b.end] for loc in self._local]
+        e_px, ctx = self.model.residual(tables, local, rows, linear)
         e_cost, e_lin, left = self.whitener.weigh(e_px, linear)
         views = None
         if linear:
@@ -855,10 +884,10 @@ class FactorEngine:
             scratch = np.zeros(b.size + len(self.buf) - self._size)
             p = self.pos[:, :, rows]
             scratch[np.where(p >= self._size, p - self._size + b.size, p - b.offset)] = J
-            views = [
-                scratch[o - b.offset : o - b.offset + c * b.shape[0]].reshape(c, b.shape[0]).T
-                for o, c in zip(b.offsets, b.cols)
-            ]
+            views, at, m2 = [], 0, b.shape[0]
+            for c in b.shape[1:]:
+                views.append(scratch[at : at + c * m2].reshape(c, m2).T)
+                at += c * m2
             e_lin = e_lin.ravel()
         self.stats["single"] += 1
         self._spent_s += time.perf_counter() - t0
@@ -879,7 +908,7 @@ class FactorEngine:
             if not len(X[q]):
                 continue
             changed = np.r_[~(X[q] == self._X[q]).all(1), False]  # index -1: none
-            missing = np.r_[np.isnan(X[q][:, 0]), False]
+            missing = np.r_[~np.isfinite(X[q]).all(1), False]  # absent or not finite
             changed_obs |= changed[self.obs[q]]
             missing_obs |= missing[self.obs[q]]
         starts = self._start[:-1]
@@ -887,8 +916,11 @@ class FactorEngine:
         missing = np.logical_or.reduceat(missing_obs, starts) if n else missing_obs
         self._valid_cost &= ~changed
         self._valid_lin &= ~changed
-        for g in np.flatnonzero(changed).tolist():
-            self._sig[g] = None
+        present = np.concatenate(
+            [np.asarray(self.keys[q], np.uint64)[np.isfinite(X[q]).all(1)] for q in range(len(X))]
+        ).tolist()
+        self._snapshot = values.extract(present) if _VALUES_EXTRACT else gtsam.Values(values)
+        self._snap_block = [None] * len(self._blocks)
         todo = ~missing & ~(self._valid_lin if linear else self._valid_cost)
         if todo.all():
             rows = slice(None)

@@ -261,18 +261,25 @@ class ProjectionBlocks:
         # the engine's order is the blocks': block g owns rows start[g]:start[g+1]
         order = np.concatenate(self.groups)
         self._order = order
-        specs = []
-        for g in self.groups:
-            poses, pose_local = np.unique(pk[g], return_inverse=True)
-            points, point_local = np.unique(lk[g], return_inverse=True)
-            specs.append(
-                (
-                    [[int(k) for k in poses], [int(k) for k in points]],
-                    [pose_local.reshape(-1), point_local.reshape(-1)],
-                )
-            )
+        sizes = np.array([len(g) for g in self.groups])
+        block = np.repeat(np.arange(len(sizes)), sizes)
+        # per block, its poses and its landmarks (each sorted) and each observation's slot
+        counts, keys, local = [], [], []
+        for k in (pk[order], lk[order]):
+            by = np.lexsort((k, block))
+            kb, bb = k[by], block[by]
+            new = np.r_[True, (kb[1:] != kb[:-1]) | (bb[1:] != bb[:-1])]
+            uid = np.cumsum(new) - 1  # index of (block, key) among all
+            first = uid[np.searchsorted(bb, np.arange(len(sizes)))]  # block's first
+            slot = np.empty(len(k), np.intp)
+            slot[by] = uid - first[bb]
+            counts.append(np.bincount(bb[new], minlength=len(sizes)))
+            keys.append(kb[new].astype(np.int64))
+            local.append(slot)
         model = _frozen_model(self.camera, self.ideal_px[order])
-        self.engine = FactorEngine(model, specs, self.whitener)
+        self.engine = FactorEngine(
+            model, sizes, np.column_stack(counts), keys, local, self.whitener
+        )
         self.stats = self.engine.stats
 
     def factors(self) -> list[gtsam.CustomFactor]:

@@ -214,7 +214,7 @@ class ObservationBlock:
             specs.append((keys, local))
         noise = first.noise
         whitener = Whitener.isotropic(noise.sigma_px, noise.loss, noise.loss_threshold)
-        engine = FactorEngine(model, specs, whitener)
+        engine = FactorEngine.from_blocks(model, specs, whitener)
         for i, b in enumerate(blocks):
             b._engine, b._index = engine, i
 
