@@ -251,8 +251,11 @@ class Kind:
             return np.asarray(values.atPoint3(key), float).tobytes()
         return np.asarray(values.atVector(key), float).tobytes()
 
-    def read(self, values: gtsam.Values, keys: list[int]) -> np.ndarray:
-        """Rows (len(keys), width) of ``keys`` (sorted) in ``values``; NaN rows if absent."""
+    def read(self, values: gtsam.Values, keys: list[int], have=None) -> np.ndarray:
+        """Rows (len(keys), width) of ``keys`` (sorted) in ``values``; NaN rows if absent.
+
+        ``have``: (len(keys),) bool, the keys present in ``values`` when known.
+        """
         out = np.full((len(keys), self.width), np.nan)
         if not keys:
             return out
@@ -269,13 +272,15 @@ class Kind:
                 if values.exists(k):
                     out[i] = np.frombuffer(self.key_bytes(values, k), float)
             return out
-        have = slice(None)
-        try:
-            sub = values.extract(keys)
-        except RuntimeError:  # some keys are absent: extract those present
-            arr = np.asarray(keys, np.uint64)
-            have = np.isin(arr, np.asarray(values.keys(), np.uint64))
-            sub = values.extract(arr[have].tolist())
+        if have is None:
+            have = slice(None)
+            try:
+                sub = values.extract(keys)
+            except RuntimeError:  # some keys are absent: extract those present
+                have = _present(values, np.asarray(keys, np.uint64))
+                sub = values.extract(np.asarray(keys, np.uint64)[have].tolist())
+        else:
+            sub = values.extract(np.asarray(keys, np.uint64)[have].tolist())
         if self.name == "pose3":
             rows = gtsam.utilities.extractPose3(sub)
         else:
@@ -290,6 +295,15 @@ class Kind:
         T[:, 12:] = (0.0, 0.0, 0.0, 1.0)
         out[have] = T
         return out
+
+
+def _present(values: gtsam.Values, keys: np.ndarray) -> np.ndarray:
+    """Which of ``keys`` (uint64, any order) ``values`` holds, (len(keys),) bool."""
+    held = np.asarray(values.keys(), np.uint64)  # sorted
+    if not len(held):
+        return np.zeros(len(keys), bool)
+    at = np.minimum(np.searchsorted(held, keys), len(held) - 1)
+    return held[at] == keys
 
 
 #: where ``extractPose3``'s row ``[R (by rows), t]`` goes in ``Pose3.matrix().ravel()``
@@ -597,6 +611,7 @@ class FactorEngine:
             at = np.where(loc >= 0, key_start[self._block_of, q] + loc, 0)
             obs = np.where(loc >= 0, row[at], -1) if len(row) else np.full(n, -1)
             self.obs.append(obs.astype(np.intp))
+        self._n_keys = sum(len(k) for k in self.keys)
         # the buffer: per block, per factor key (kinds in key_order, keys in the order
         # given) a (2m, dim) Fortran-ordered block, blocks and keys one after the other
         order = list(model.key_order)
@@ -900,7 +915,10 @@ class FactorEngine:
         outside one); the cache then serves that pass without reading variables.
         """
         t0 = time.perf_counter()
-        X = [kind.read(values, keys) for kind, keys in zip(self.kinds, self.keys)]
+        have = [None] * len(self.kinds)
+        if values.size() < self._n_keys:  # some keys are absent: find them once
+            have = [_present(values, np.asarray(keys, np.uint64)) for keys in self.keys]
+        X = [kind.read(values, keys, h) for kind, keys, h in zip(self.kinds, self.keys, have)]
         n = self.n
         changed_obs = np.zeros(n, bool)
         missing_obs = np.zeros(n, bool)
