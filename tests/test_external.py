@@ -13,6 +13,7 @@ import pytest
 from gtsam.utils.numerical_derivative import numericalDerivative21, numericalDerivative22
 
 from gtsam_sphere.core.camera import SphereCamera
+from gtsam_sphere.core.least_squares import LMStatus
 from gtsam_sphere.estimation.external import (
     ProjectionBlocks,
     bearing_sigma_rad,
@@ -616,6 +617,28 @@ def test_levenberg_marquardt_matches_gtsam_on_cpp_factors(small_scene):
     ref = gtsam.LevenbergMarquardtOptimizer(graph, initial).optimize()
     assert info["converged"] and info["iterations"] >= 2
     assert graph.error(ours) == pytest.approx(graph.error(ref), rel=1e-6)
+
+
+def test_levenberg_marquardt_status_means_what_optimize_means():
+    """One status enum (LMStatus) and optimize()'s meaning: converged on a small decrease,
+    stalled when no step lowers the cost before lambda passes its upper bound."""
+    key = gtsam.symbol("x", 0)
+    target = gtsam.Pose3(gtsam.Rot3.Rz(0.3), np.array([1.0, 2.0, 3.0]))
+    graph = gtsam.NonlinearFactorGraph()
+    graph.add(gtsam.PriorFactorPose3(key, target, gtsam.noiseModel.Isotropic.Sigma(6, 0.1)))
+    start = gtsam.Values()
+    start.insert(key, gtsam.Pose3(gtsam.Rot3.Rz(0.5), np.array([1.5, 2.0, 2.0])))
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(1)
+    _, info = levenberg_marquardt(graph, start, params)
+    assert info["status"] is LMStatus.MAX_ITERATIONS and not info["converged"]
+    out, info = levenberg_marquardt(graph, start)
+    assert info["status"] is LMStatus.CONVERGED and info["converged"]
+    at_optimum = gtsam.Values()
+    at_optimum.insert(key, target)
+    _, info = levenberg_marquardt(graph, at_optimum)
+    assert info["status"] is LMStatus.STALLED and not info["converged"]
+    assert info["iterations"] == 1
 
 
 # ----------------------------------------------------------------------------- simulator, bench

@@ -211,9 +211,16 @@ def _mestimator_parameter(m, loss: Loss) -> float | None:
 
 
 def apply_left(J: np.ndarray, left: np.ndarray, out: np.ndarray) -> None:
-    """``out[:, :, n] = left_n @ J[:, :, n]``: weigh Jacobian rows ``J`` (2, c, n).
+    """``out[:, :, n] = left_n @ J[:, :, n]``: weigh the Jacobian rows of observations.
 
-    ``left`` is (n,) (a scale per observation) or (n, 2, 2) (:meth:`Whitener.weigh`).
+    Parameters
+    ----------
+    J : ndarray, shape (2, c, n)
+        ``d e / d x`` per observation (px per unit of ``x``), rows ``u``, ``v``.
+    left : ndarray, shape (n,) or (n, 2, 2)
+        A scale per observation or a 2x2 factor (:meth:`Whitener.weigh`, 1/px).
+    out : ndarray, shape (2, c, n)
+        Receives the whitened, weighted Jacobian (dimensionless per unit of ``x``).
     """
     if left.ndim == 1:
         np.multiply(J, left, out=out)
@@ -440,6 +447,13 @@ class ProjectionModel:
         rows : slice or ndarray of int
             The observations (for their measurements and fixed points).
         jacobians : bool
+
+        Returns
+        -------
+        e_px : ndarray, shape (m, 2)
+            ``measured - predicted`` (px).
+        ctx : tuple
+            What :meth:`jacobian` needs.
         """
         T = tables[0].T[:, index[0]]  # (16, m), rows of Pose3.matrix()
         R = T[[0, 1, 2, 4, 5, 6, 8, 9, 10]].reshape(3, 3, -1)  # R[i, j] = (R_A)_ij
@@ -467,7 +481,21 @@ class ProjectionModel:
         return e, (R, q, pc, Rb, J_theta, J_pc)
 
     def jacobian(self, ctx, left: np.ndarray) -> np.ndarray:
-        """Whitened Jacobian (2, columns, m): ``[omega, v]`` of ``A``, point, theta, ``B``."""
+        """Whitened, weighted Jacobian of the residuals :meth:`residual` computed.
+
+        Parameters
+        ----------
+        ctx : tuple
+            The second output of :meth:`residual` (with ``jacobians``).
+        left : ndarray, shape (m,) or (m, 2, 2)
+            :meth:`Whitener.weigh`'s left factor.
+
+        Returns
+        -------
+        J : ndarray, shape (2, columns, m)
+            Rows ``u``, ``v``; columns ``[omega, v]`` of ``A`` (rad, m), the point (m),
+            theta (its units), ``[omega, v]`` of ``B``; observation last.
+        """
         R, q, pc, Rb, J_theta, J_pc = ctx
         J = np.empty((2, self.columns, pc.shape[1]))  # [row u/v, column, observation]
         Jc = J[:, 3:6]
@@ -568,11 +596,20 @@ class FactorEngine:
     Parameters
     ----------
     model : ProjectionModel
-        ``kinds``, ``key_order``, ``columns``, ``residual`` and ``jacobian``.
-    blocks : list of (list of list of int, list of ndarray of int)
-        Per block, per kind of ``model.kinds``: the block's keys (any order), and
-        each observation's slot in them (m,), -1 for none. Block ``g`` holds the
-        observations ``starts[g]:starts[g + 1]`` of the model's data (in block order).
+        ``kinds``, ``key_order``, ``columns``, ``residual`` and ``jacobian``; its
+        per-observation data (measurements, fixed points) in block order: block ``g``
+        holds observations ``sum(sizes[:g]) : sum(sizes[:g + 1])``.
+    sizes : array_like of int, shape (G,)
+        Observations per block.
+    counts : array_like of int, shape (G, K)
+        Keys per block and kind (``K = len(model.kinds)``).
+    keys : list of array_like of int, K of them
+        Per kind, every block's keys (any order within a block), concatenated in
+        block order (``counts[:, q].sum()`` each).
+    local : list of array_like of int, K of them, each shape (N,)
+        Per kind, each observation's slot among its block's keys of that kind, -1
+        for none (a fixed point, no extrinsic pose). :meth:`from_blocks` builds these
+        arrays from a list of blocks.
     whitener : Whitener
 
     Attributes
