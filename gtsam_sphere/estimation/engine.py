@@ -709,10 +709,12 @@ class FactorEngine:
         self._spent_s = 0.0  # on single blocks since the last full pass
         self._full_pass_s = 2e-6 * n  # estimate until measured
         rng = np.random.default_rng(0)
-        self._sample = []  # (kind, key, row) of a few variables of each kind
+        # (kind, key, row, observations using it) of a few variables of each kind
+        self._sample = []
         for q in range(nk):
+            uses = np.bincount(self.obs[q][self.obs[q] >= 0], minlength=len(self.keys[q]))
             pick = rng.choice(len(self.keys[q]), size=min(8, len(self.keys[q])), replace=False)
-            self._sample += [(q, self.keys[q][i], int(i)) for i in sorted(pick.tolist())]
+            self._sample += [(q, self.keys[q][i], i, int(uses[i])) for i in sorted(pick.tolist())]
         self._lock = threading.RLock()
         # per mode (cost, linearisation): token of the trusted pass whose Values the
         # cache holds for every block of that mode (None: check the variables)
@@ -899,20 +901,23 @@ class FactorEngine:
     def _want_full_pass(self, values, linear: bool) -> bool:
         """On a miss: will most blocks miss in this pass (a batch optimiser's step)?
 
-        Yes if most blocks are not cached for this mode, or if most of a small
-        sample of variables changed since the last full pass; otherwise (an
-        incremental solver relinearising a few blocks) evaluate single blocks
-        until their time exceeds that of a full pass (ski rental).
+        Yes if most blocks are not cached for this mode, or if variables used by most
+        of a small sample's observations changed since the last full pass (each
+        sampled variable weighs as many observations as use it: a changed intrinsics
+        vector, in every observation, means a full pass); otherwise (an incremental
+        solver relinearising a few blocks) evaluate single blocks until their time
+        exceeds that of a full pass (ski rental).
         """
         valid = self._valid_lin if linear else self._valid_cost
         if np.count_nonzero(valid) < 0.5 * len(valid):
             return True
         changed = seen = 0
-        for q, k, i in self._sample:
+        for q, k, i, uses in self._sample:
             if not values.exists(k):
                 continue
-            seen += 1
-            changed += self.kinds[q].key_bytes(values, k) != self._X[q][i].tobytes()
+            seen += uses
+            if self.kinds[q].key_bytes(values, k) != self._X[q][i].tobytes():
+                changed += uses
         if seen and changed > 0.5 * seen:
             return True
         return self._spent_s >= self._full_pass_s
