@@ -53,8 +53,9 @@ import time
 import gtsam
 import numpy as np
 
-from gtsam_sphere import graph as graph_module
+from gtsam_sphere.estimation import graph as graph_module
 from gtsam_sphere.estimation.calibrate import initial_principal_distance, initial_values
+from gtsam_sphere.estimation.engine import FactorEngine
 from gtsam_sphere.estimation.graph import (
     INTRINSICS_KEY,
     BundleProblem,
@@ -155,8 +156,8 @@ def breakdown(problem: BundleProblem, values: gtsam.Values, other: gtsam.Values,
     and the binding floor (the same factors handing over precomputed arrays)."""
     problem.build()
     blocks = problem.blocks
-    views = [v for b in blocks for v in b._shared.views[b._index]]
-    shared = graph_module._SharedEvaluation
+    views = [v for b in blocks for v in b.engine()[0]._blocks[b._index].views]
+    engine = FactorEngine
     spent: dict[str, float] = {}
 
     def timing(cls, name):
@@ -174,7 +175,7 @@ def breakdown(problem: BundleProblem, values: gtsam.Values, other: gtsam.Values,
 
     originals = [
         (cls, name, timing(cls, name))
-        for cls, name in ((shared, "_compute"), (shared, "ready"), (ObservationBlock, "evaluate"))
+        for cls, name in ((engine, "_full_pass"), (engine, "_result"))
     ]
     timed_graph = gtsam.NonlinearFactorGraph()
     for b in blocks:
@@ -200,13 +201,12 @@ def breakdown(problem: BundleProblem, values: gtsam.Values, other: gtsam.Values,
     for label, rows in parts.items():
         m = {
             k: 1e3 * statistics.median([row.get(k, 0.0) for row in rows])
-            for k in ("total", "evaluate", "ready", "_compute")
+            for k in ("total", "_result", "_full_pass")
         }
         print(
             f"  {label:9s} {m['total']:6.2f} = evaluation of all observations "
-            f"{m['_compute']:5.2f} + per-block checks {m['ready'] - m['_compute']:5.2f} "
-            f"+ per-block copies and returns {m['evaluate'] - m['ready']:5.2f} "
-            f"+ GTSAM (C++) {m['total'] - m['evaluate']:5.2f}"
+            f"{m['_full_pass']:5.2f} + per-block checks {m['_result'] - m['_full_pass']:5.2f} "
+            f"+ per-block copies, returns and GTSAM (C++) {m['total'] - m['_result']:5.2f}"
         )
 
     # binding floor: the same keys and shapes, callbacks that only hand over arrays

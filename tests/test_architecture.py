@@ -126,3 +126,13 @@ def test_no_new_import_cycles():
     new = [c for c in cycles if c not in KNOWN_CYCLES]
     assert not new, f"new import cycles: {new}"
     assert all(c in cycles for c in KNOWN_CYCLES), f"gone, update KNOWN_CYCLES: {cycles}"
+
+
+def test_one_factor_engine():
+    """The Jacobian hand-off to GTSAM and the robust whitening live in one engine (issue 14):
+    ``estimation.engine``; the M-estimators themselves in ``core.robust``."""
+    homes = {"estimation.engine", "core.robust"}
+    for name, path in _modules().items():
+        text = path.read_text()
+        for word in ("JacobianVector", "whitening_scale"):
+            assert name in homes or word not in text, f"{name} uses {word}: use the engine"

@@ -13,6 +13,7 @@ import pytest
 from gtsam.utils.numerical_derivative import numericalDerivative21, numericalDerivative22
 
 from gtsam_sphere.core.camera import SphereCamera
+from gtsam_sphere.core.least_squares import LMStatus
 from gtsam_sphere.estimation.external import (
     ProjectionBlocks,
     bearing_sigma_rad,
@@ -214,9 +215,11 @@ def test_any_grouping_linearises_like_single_factors():
     groups = [np.setdiff1d(g, np.concatenate(two)) for g in groups] + two
     groups = [g for g in groups if len(g)]
     blocks = ProjectionBlocks(scene.camera, scene.uv_px, pk, lk, noise, groups=groups)
-    patterns = [b.pattern for b in blocks._blocks]
-    assert any(b.pattern[0] > 1 for b in blocks._blocks)  # several landmarks in a block
-    assert any(len(b.poses) < b.end - b.start for b in blocks._blocks)  # a pose seen twice
+    engine = blocks.engine
+    keys = [engine.block_keys(g) for g in range(engine.n_blocks)]  # poses, landmarks
+    patterns = [b.shape for b in engine._blocks]
+    assert any(len(k[1]) > 1 for k in keys)  # several landmarks in a block
+    assert any(len(k[0]) < len(g) for k, g in zip(keys, blocks.groups))  # a pose seen twice
     assert len(set(patterns)) < len(patterns)  # shared patterns
     graph = gtsam.NonlinearFactorGraph()
     factors = blocks.factors()
@@ -614,6 +617,28 @@ def test_levenberg_marquardt_matches_gtsam_on_cpp_factors(small_scene):
     ref = gtsam.LevenbergMarquardtOptimizer(graph, initial).optimize()
     assert info["converged"] and info["iterations"] >= 2
     assert graph.error(ours) == pytest.approx(graph.error(ref), rel=1e-6)
+
+
+def test_levenberg_marquardt_status_means_what_optimize_means():
+    """One status enum (LMStatus) and optimize()'s meaning: converged on a small decrease,
+    stalled when no step lowers the cost before lambda passes its upper bound."""
+    key = gtsam.symbol("x", 0)
+    target = gtsam.Pose3(gtsam.Rot3.Rz(0.3), np.array([1.0, 2.0, 3.0]))
+    graph = gtsam.NonlinearFactorGraph()
+    graph.add(gtsam.PriorFactorPose3(key, target, gtsam.noiseModel.Isotropic.Sigma(6, 0.1)))
+    start = gtsam.Values()
+    start.insert(key, gtsam.Pose3(gtsam.Rot3.Rz(0.5), np.array([1.5, 2.0, 2.0])))
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(1)
+    _, info = levenberg_marquardt(graph, start, params)
+    assert info["status"] is LMStatus.MAX_ITERATIONS and not info["converged"]
+    out, info = levenberg_marquardt(graph, start)
+    assert info["status"] is LMStatus.CONVERGED and info["converged"]
+    at_optimum = gtsam.Values()
+    at_optimum.insert(key, target)
+    _, info = levenberg_marquardt(graph, at_optimum)
+    assert info["status"] is LMStatus.STALLED and not info["converged"]
+    assert info["iterations"] == 1
 
 
 # ----------------------------------------------------------------------------- simulator, bench

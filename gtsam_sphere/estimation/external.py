@@ -65,17 +65,15 @@ variant; prefer it to the isotropic ``BearingFactor3D``.
 from __future__ import annotations
 
 import math
-import time
-from dataclasses import dataclass
 
 import gtsam
 import numpy as np
 
 from ..core.camera import SphereCamera, check_uv
-from ..core.lie import skew
 from ..core.rays import bearings as bearings  # re-exported: its home is the core
 from ..core.rays import camera_of
-from ..core.robust import Loss, robust_weight, whitening_scale
+from .engine import FactorEngine, FrozenMeasurement, ProjectionModel, Whitener
+from .optimize import levenberg_marquardt as levenberg_marquardt  # re-exported
 
 __all__ = [
     "ProjectionBlocks",
@@ -100,98 +98,12 @@ def _keys(keys, n: int, name: str) -> np.ndarray:
     return arr
 
 
-# --------------------------------------------------------------------------- noise
-
-
-class _Whitener:
-    """Per-observation whitening and robust weighting of a 2-D GTSAM noise model.
-
-    ``sqrt_info`` (2, 2) is the base model's square-root information; the
-    M-estimator (if the model is ``Robust``) acts on the whitened norm
-    ``r = |sqrt_info @ e|``. Huber, Cauchy, Tukey and Geman-McClure are
-    vectorised (their parameter is read back from the estimator and checked
-    against its own ``weight``/``loss``); any other estimator is called per
-    observation.
-    """
-
-    _KINDS = (
-        ("Huber", Loss.HUBER),
-        ("Cauchy", Loss.CAUCHY),
-        ("Tukey", Loss.TUKEY),
-        ("GemanMcClure", Loss.GEMAN_MCCLURE),
-    )
-
-    def __init__(self, noise_model) -> None:
-        if not isinstance(noise_model, gtsam.noiseModel.Base):
-            raise TypeError(f"expected a gtsam.noiseModel, got {type(noise_model).__name__}")
-        if noise_model.dim() != 2:
-            raise ValueError(f"the noise model must be 2-dimensional, got {noise_model.dim()}")
-        base, self.mest = noise_model, None
-        if isinstance(noise_model, gtsam.noiseModel.Robust):
-            base, self.mest = noise_model.noise(), noise_model.robust()
-        if not isinstance(base, gtsam.noiseModel.Gaussian) or base.isConstrained():
-            raise ValueError(
-                f"unsupported noise model {type(base).__name__}: use a Gaussian model "
-                "(Unit, Isotropic, Diagonal, Gaussian), optionally inside Robust"
-            )
-        self.sqrt_info = np.asarray(base.Whiten(np.eye(2)), float)
-        self.loss, self.k = None, 0.0
-        if self.mest is None or isinstance(self.mest, gtsam.noiseModel.mEstimator.Null):
-            self.loss = Loss.L2
-        else:
-            for name, loss in self._KINDS:
-                if isinstance(self.mest, getattr(gtsam.noiseModel.mEstimator, name)):
-                    k = self._parameter(loss)
-                    if k is not None:
-                        self.loss, self.k = loss, k
-                    break
-
-    def _parameter(self, loss: Loss) -> float | None:
-        """Read the estimator's threshold back from its functions; None if they disagree
-        with :func:`gtsam_sphere.core.robust.robust_weight` (then it is called per
-        observation)."""
-        m, big = self.mest, 1e6
-        if loss is Loss.HUBER:
-            k = m.weight(big) * big
-        elif loss is Loss.CAUCHY:
-            w = m.weight(1.0)
-            k = math.sqrt(w / (1.0 - w)) if 0.0 < w < 1.0 else float("nan")
-        else:  # Tukey: loss(inf) = k^2 / 6; Geman-McClure: loss(inf) = k^2 / 2
-            k = math.sqrt((6.0 if loss is Loss.TUKEY else 2.0) * m.loss(big))
-        if not (math.isfinite(k) and k > 0):
-            return None
-        probe = np.array([0.05, 0.3, 0.9, 1.7, 3.1, 7.0, 25.0]) * k
-        w, rho = robust_weight(probe, loss, k)
-        w_ref = np.array([m.weight(float(r)) for r in probe])
-        rho_ref = np.array([m.loss(float(r)) for r in probe])
-        ok = np.allclose(w, w_ref, rtol=1e-9, atol=1e-12) and np.allclose(
-            rho, rho_ref, rtol=1e-9, atol=1e-12
-        )
-        return float(k) if ok else None
-
-    def weights(self, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """IRLS weights ``w(r)`` and costs ``rho(r)`` of whitened norms ``r`` (n,)."""
-        if self.loss is not None:
-            return robust_weight(r, self.loss, self.k)
-        w = np.array([self.mest.weight(float(x)) for x in r])
-        rho = np.array([self.mest.loss(float(x)) for x in r])
-        return w, rho
-
-
 # --------------------------------------------------------------------------- pixel factors
 
 
-def _frozen_residual(camera: SphereCamera, ideal_px, R_wc, t_wc, p_w, jacobians: bool):
-    """``e = ideal_px - ideal(P)`` with ``P = R_wc^T (p_w - t_wc)``; all (n, ...).
-
-    Returns ``e`` (n, 2) px, and with ``jacobians`` also ``de/dP`` (n, 2, 3)
-    px/m and ``P`` (n, 3) m.
-    """
-    pc = np.einsum("nji,nj->ni", R_wc, p_w - t_wc)
-    if not jacobians:
-        return ideal_px - camera.ideal_from_points(pc)
-    pred, J = camera.ideal_from_points(pc, jacobians=True)
-    return ideal_px - pred, -J, pc
+def _frozen_model(camera: SphereCamera, ideal_px: np.ndarray) -> ProjectionModel:
+    """The engine's projection model with the calibration frozen (no intrinsics key)."""
+    return ProjectionModel(FrozenMeasurement(camera, ideal_px))
 
 
 def make_projection_factor(
@@ -206,6 +118,9 @@ def make_projection_factor(
     Residual (px, ideal image, relative to the principal point):
     ``camera.ideal_from_pixels(uv_px) - camera.ideal_from_points(R_wc^T (p_w - t_wc))``;
     the measurement side (Brown terms, learned correction) is evaluated once, here.
+    The residual and Jacobians are those of the factor engine's projection model
+    (:class:`~gtsam_sphere.estimation.engine.ProjectionModel`); the noise model is
+    GTSAM's.
 
     Parameters
     ----------
@@ -236,17 +151,20 @@ def make_projection_factor(
     if not np.all(np.isfinite(ideal)):
         raise ValueError(f"pixel {uv[0].tolist()} has no finite corrected coordinates")
     pk, lk = int(pose_key), int(point_key)
+    model = _frozen_model(camera, ideal)
+    index = [np.zeros(1, np.intp), np.zeros(1, np.intp)]
+    one = np.ones(1)
 
     def evaluate(this, values, H):
-        T = values.atPose3(pk).matrix()
-        R, t = T[None, :3, :3], T[None, :3, 3]
-        p = np.asarray(values.atPoint3(lk), float)[None]
-        if H is None:
-            return _frozen_residual(camera, ideal, R, t, p, False)[0]
-        e, J, pc = _frozen_residual(camera, ideal, R, t, p, True)
-        J = J[0]
-        H[0] = np.hstack([J @ skew(pc[0]), -J])
-        H[1] = J @ R[0].T
+        tables = [
+            values.atPose3(pk).matrix().reshape(1, 16),
+            np.asarray(values.atPoint3(lk), float).reshape(1, 3),
+        ]
+        e, ctx = model.residual(tables, index, slice(None), H is not None)
+        if H is not None:
+            J = model.jacobian(ctx, one)[:, :, 0]  # (2, 9): [omega, v] of the pose, point
+            H[0] = np.asfortranarray(J[:, :6])
+            H[1] = np.asfortranarray(J[:, 6:9])
         return e[0]
 
     return gtsam.CustomFactor(noise_model, [pk, lk], evaluate)
@@ -270,22 +188,13 @@ class ProjectionBlocks:
     ``1 / max_obs``; measured at 1e5 observations: 8 is the optimum for
     batch LM, ISAM2 ran 13% faster with 16).
 
-    All blocks share one vectorised evaluation. Inside
-    :func:`levenberg_marquardt` the first callback of each linearisation or
-    evaluation evaluates every block whose variables changed in one numpy
-    call and the others only copy their rows out. Elsewhere (``gtsam.ISAM2``,
-    GTSAM's optimisers) a callback reads its own variables and uses the cache
-    only if they equal, bit for bit, those the cache was computed at; on a
-    miss it evaluates its block alone, unless a sample of the variables shows
-    that most of them changed (a batch step) or the time spent on single
-    blocks since the last full evaluation exceeds the cost of one, in which
-    case it reads all variables and re-evaluates every changed block at once.
-    A result is therefore always the one its own variables give. A linearised
-    block hands its Jacobian blocks to GTSAM in one C++ copy from a zero-padded
-    ``gtsam.JacobianVector`` that all blocks of its sparsity pattern share (the
-    same number of landmarks and images, each observation in the same slots: with
-    the default grouping, one per block size), each callback writing only its
-    non-zeros.
+    The blocks run on the package's one factor engine
+    (:class:`~gtsam_sphere.estimation.engine.FactorEngine`) with the projection
+    model of a frozen camera: one shared evaluation of every block whose
+    variables changed, a stored result used only at bit-identical variables,
+    single blocks evaluated alone under an incremental solver, and inside
+    :func:`levenberg_marquardt` one evaluation per pass without reading the
+    variables again (see the engine's documentation).
 
     GTSAM's C++ optimisers hand every ``CustomFactor`` callback a copy of
     their whole ``gtsam.Values`` (see :func:`levenberg_marquardt`): use that
@@ -319,6 +228,9 @@ class ProjectionBlocks:
         Observation indices (into the input) of each block.
     ideal_px : ndarray, shape (N, 2)
         Corrected measurements ``camera.ideal_from_pixels(uv_px)`` (px), input order.
+    engine : FactorEngine
+    stats : dict
+        The engine's counters: ``hits``, ``single``, ``full_passes``.
     """
 
     def __init__(
@@ -331,8 +243,6 @@ class ProjectionBlocks:
         max_obs: int = 8,
         groups=None,
     ):
-        import threading
-
         self.camera = camera_of(calibration_or_camera)
         uv = check_uv(uv_px)
         n = len(uv)
@@ -344,74 +254,33 @@ class ProjectionBlocks:
         bad = np.flatnonzero(~np.isfinite(self.ideal_px).all(1))
         if len(bad):
             raise ValueError(f"observations {bad[:5].tolist()} have no finite corrected pixel")
-        self.whitener = _Whitener(noise_model)
+        self.whitener = Whitener.from_noise_model(noise_model)
         self.noise_model = noise_model
         self.groups = _landmark_groups(lk, max_obs) if groups is None else _check_groups(groups, n)
         self.n = n
-        # everything below is in block order: block g owns rows start[g]:start[g+1]
+        # the engine's order is the blocks': block g owns rows start[g]:start[g+1]
         order = np.concatenate(self.groups)
         self._order = order
         sizes = np.array([len(g) for g in self.groups])
-        self._start = np.r_[0, np.cumsum(sizes)]
-        self._block_of = np.repeat(np.arange(len(self.groups)), sizes)
-        poses, obs_pose = np.unique(pk[order], return_inverse=True)
-        points, obs_point = np.unique(lk[order], return_inverse=True)
-        self._pose_keys = [int(k) for k in poses]
-        self._point_keys = [int(k) for k in points]
-        self._obs_pose, self._obs_point = obs_pose, obs_point
-        self._ideal = self.ideal_px[order]
-        # cache (block order): variables it was computed at, results, validity per block
-        self._T = np.full((len(poses), 4, 4), np.nan)
-        self._P = np.full((len(points), 3), np.nan)
-        self._e_cost = np.zeros((n, 2))
-        self._e_lin = np.zeros((n, 2))
-        self._J_pose = np.zeros((n, 2, 6))
-        self._J_point = np.zeros((n, 2, 3))
-        # blocks of one sparsity pattern share one zero-padded C++ copy of their Jacobian
-        # blocks (a _Staging, made at the first linearisation of the pattern)
-        self._staging: dict[tuple, _Staging] = {}
-        self._blocks = []
-        for g in range(len(self.groups)):
-            s, e = int(self._start[g]), int(self._start[g + 1])
-            bp, lp = np.unique(obs_pose[s:e], return_inverse=True)
-            bl, ll = np.unique(obs_point[s:e], return_inverse=True)
-            pattern = (len(bl), len(bp), ll.astype(np.intp).tobytes(), lp.astype(np.intp).tobytes())
-            self._blocks.append(
-                _Block(
-                    s,
-                    e,
-                    bp,
-                    bl,
-                    [self._pose_keys[i] for i in bp],
-                    [self._point_keys[i] for i in bl],
-                    pattern,
-                    self._e_cost[s:e].reshape(-1),
-                    self._e_lin[s:e].reshape(-1),
-                    self._J_pose[s:e],
-                    self._J_point[s:e],
-                )
-            )
-        self._valid_cost = np.zeros(len(self.groups), bool)
-        self._valid_lin = np.zeros(len(self.groups), bool)
-        self._sig = np.full(len(self.groups), None, dtype=object)  # bytes of known hits
-        self._pose_key_arr = np.array(self._pose_keys, dtype=np.uint64)
-        self._pose_rows: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
-        self._spent_s = 0.0  # on single blocks since the last full pass
-        self._full_pass_s = 2e-6 * n  # estimate until measured
-        rng = np.random.default_rng(0)
-        pick_pose = rng.choice(len(poses), size=min(8, len(poses)), replace=False)
-        pick_point = rng.choice(len(points), size=min(8, len(points)), replace=False)
-        # (key, index): poses index >= 0, landmarks -1 - index
-        self._sample = [(self._pose_keys[i], int(i)) for i in pick_pose] + [
-            (self._point_keys[i], -1 - int(i)) for i in pick_point
-        ]
-        self._lock = threading.RLock()
-        # per mode (cost, linearisation): token of the trusted pass whose Values the cache
-        # holds for every block of that mode (None: check the variables)
-        self._ready: list[object | None] = [None, None]
-        self.stats = {"hits": 0, "single": 0, "full_passes": 0}
-
-    # ---------------------------------------------------------------- public
+        block = np.repeat(np.arange(len(sizes)), sizes)
+        # per block, its poses and its landmarks (each sorted) and each observation's slot
+        counts, keys, local = [], [], []
+        for k in (pk[order], lk[order]):
+            by = np.lexsort((k, block))
+            kb, bb = k[by], block[by]
+            new = np.r_[True, (kb[1:] != kb[:-1]) | (bb[1:] != bb[:-1])]
+            uid = np.cumsum(new) - 1  # index of (block, key) among all
+            first = uid[np.searchsorted(bb, np.arange(len(sizes)))]  # block's first
+            slot = np.empty(len(k), np.intp)
+            slot[by] = uid - first[bb]
+            counts.append(np.bincount(bb[new], minlength=len(sizes)))
+            keys.append(kb[new].astype(np.int64))
+            local.append(slot)
+        model = _frozen_model(self.camera, self.ideal_px[order])
+        self.engine = FactorEngine(
+            model, sizes, np.column_stack(counts), keys, local, self.whitener
+        )
+        self.stats = self.engine.stats
 
     def factors(self) -> list[gtsam.CustomFactor]:
         """The factors to add to a graph, one per block.
@@ -425,11 +294,7 @@ class ProjectionBlocks:
             ``2 n_block x 3`` per landmark and ``2 n_block x 6`` per pose
             (tangent ``[omega, v]`` of ``world_from_cam * Exp(xi)``).
         """
-        out = []
-        for g, b in enumerate(self._blocks):
-            model = gtsam.noiseModel.Unit.Create(2 * (b.end - b.start))
-            out.append(gtsam.CustomFactor(model, b.point_keys + b.pose_keys, self._callback(g)))
-        return out
+        return [self.engine.factor(g) for g in range(self.engine.n_blocks)]
 
     def residuals_px(self, values: gtsam.Values) -> np.ndarray:
         """Unweighted residuals of all observations.
@@ -445,9 +310,8 @@ class ProjectionBlocks:
             ``ideal_from_pixels(uv) - ideal_from_points(P_cam)`` in pixels of
             the ideal image, input order.
         """
-        R, t, p = self._read_obs(values)
         out = np.empty((self.n, 2))
-        out[self._order] = _frozen_residual(self.camera, self._ideal, R, t, p, False)
+        out[self._order] = self.engine.residuals_px(values)
         return out
 
     def whitened_norms(self, values: gtsam.Values) -> np.ndarray:
@@ -462,8 +326,7 @@ class ProjectionBlocks:
         r : ndarray, shape (N,)
             ``|sqrt_info @ e_px|`` per observation, input order.
         """
-        e = self.residuals_px(values) @ self.whitener.sqrt_info.T
-        return np.sqrt((e * e).sum(1))
+        return self.whitener.norms(self.residuals_px(values))
 
     def robust_weights(self, values: gtsam.Values) -> np.ndarray:
         """IRLS weights of the observations (1 for inliers of Huber, < 1 down-weighted).
@@ -478,325 +341,6 @@ class ProjectionBlocks:
             ``w(r)`` of the noise model's M-estimator (1 without one), input order.
         """
         return self.whitener.weights(self.whitened_norms(values))[0]
-
-    # ---------------------------------------------------------------- internals
-
-    def _read_obs(self, values):
-        T = np.array([values.atPose3(k).matrix() for k in self._pose_keys])
-        P = np.array([values.atPoint3(k) for k in self._point_keys], float).reshape(-1, 3)
-        return T[self._obs_pose, :3, :3], T[self._obs_pose, :3, 3], P[self._obs_point]
-
-    def _callback(self, g: int):
-        b = self._blocks[g]
-        lock, ready, valid_cost, valid_lin = (
-            self._lock,
-            self._ready,
-            self._valid_cost,
-            self._valid_lin,
-        )
-        stats, native_type = self.stats, gtsam.JacobianVector
-
-        def evaluate(this, values, H):
-            trusted = _TRUSTED_PASS
-            # inside levenberg_marquardt, once a full pass has validated the cache for this
-            # pass's Values (which does not change during the pass): no variable is read
-            if trusted is not None and values is trusted[0]:
-                with lock:
-                    if H is None:
-                        if ready[0] is trusted[1] and valid_cost[g]:
-                            stats["hits"] += 1
-                            return b.e_cost
-                    elif ready[1] is trusted[1] and valid_lin[g] and type(H) is native_type:
-                        stats["hits"] += 1
-                        staging = b.staging or self._staged(b)
-                        staging.write(b.J_pose, b.J_point)
-                        H[:] = staging.native  # one C++ copy of all blocks
-                        return b.e_lin
-            return self._evaluate(g, values, H)
-
-        return evaluate
-
-    def _compute(self, rows, R, t, p, linear: bool):
-        """Whitened weighted errors (and Jacobians) of the rows ``rows`` (block order)."""
-        S = self.whitener.sqrt_info
-        if not linear:
-            e = _frozen_residual(self.camera, self._ideal[rows], R, t, p, False) @ S.T
-            r = np.sqrt((e * e).sum(1))
-            _, rho = self.whitener.weights(r)
-            scale = whitening_scale(r, rho)
-            return e * scale[:, None], None, None, None
-        e, J, pc = _frozen_residual(self.camera, self._ideal[rows], R, t, p, True)
-        e = e @ S.T
-        r = np.sqrt((e * e).sum(1))
-        w, rho = self.whitener.weights(r)
-        scale = whitening_scale(r, rho)
-        sw = np.sqrt(w)
-        if S[0, 1] == 0.0 and S[1, 0] == 0.0 and S[0, 0] == S[1, 1]:  # isotropic: S = s I
-            J = J * S[0, 0]  # the einsum's numbers (but the sign of a zero), 30x faster
-        else:
-            J = np.einsum("ab,nbc->nac", S, J)
-        J *= sw[:, None, None]  # d(whitened e)/dP
-        J_pose = np.concatenate([J @ skew(pc), -J], axis=2)
-        J_point = J @ R.transpose(0, 2, 1)  # J @ R_wc^T
-        return e * scale[:, None], e * sw[:, None], J_pose, J_point
-
-    def _evaluate(self, g: int, values, H):
-        b = self._blocks[g]
-        linear = H is not None
-        trusted = _TRUSTED_PASS
-        if trusted is not None and values is trusted[0]:
-            # inside levenberg_marquardt: this Values object does not change during the pass,
-            # so one full pass per pass validates every block without reading its variables
-            with self._lock:
-                valid = self._valid_lin if linear else self._valid_cost
-                if self._ready[linear] is not trusted[1]:
-                    self._full_pass(values, linear or trusted[2], trusted[1])
-                if valid[g]:
-                    self.stats["hits"] += 1
-                    if not linear:
-                        return b.e_cost
-                    self._fill_jacobians(b, H, b.J_pose, b.J_point)
-                    return b.e_lin
-        # the block's variables, bit for bit (C order): poses (4x4 each), then landmarks
-        sig = b"".join(
-            [values.atPose3(k).matrix().tobytes() for k in b.pose_keys]
-            + [np.asarray(values.atPoint3(k), float).tobytes() for k in b.point_keys]
-        )
-        with self._lock:
-            hit = self._hit(g, b, sig, linear)
-            if not hit and self._want_full_pass(values, linear):
-                self._full_pass(values, linear)
-                hit = self._hit(g, b, sig, linear)
-            if not hit:
-                return self._single(b, sig, H)
-            self.stats["hits"] += 1
-            if not linear:
-                return b.e_cost
-            self._fill_jacobians(b, H, b.J_pose, b.J_point)
-            return b.e_lin
-
-    def _want_full_pass(self, values, linear: bool) -> bool:
-        """On a miss: will most blocks miss in this pass (a batch optimiser's step)?
-
-        Yes if most blocks are not cached for this mode, or if most of a small
-        sample of variables changed since the last full pass; otherwise (an
-        incremental solver relinearising a few blocks) evaluate single blocks
-        until their time exceeds that of a full pass (ski rental).
-        """
-        valid = self._valid_lin if linear else self._valid_cost
-        if np.count_nonzero(valid) < 0.5 * len(valid):
-            return True
-        changed = seen = 0
-        for k, i in self._sample:
-            if not values.exists(k):
-                continue
-            seen += 1
-            if i >= 0:
-                changed += values.atPose3(k).matrix().tobytes() != self._T[i].tobytes()
-            else:
-                changed += (
-                    np.asarray(values.atPoint3(k), float).tobytes() != self._P[-1 - i].tobytes()
-                )
-        if seen and changed > 0.5 * seen:
-            return True
-        return self._spent_s >= self._full_pass_s
-
-    def _hit(self, g: int, b, sig: bytes, linear: bool) -> bool:
-        """The cache holds block ``g`` computed at exactly the variables ``sig``."""
-        if not (self._valid_lin[g] if linear else self._valid_cost[g]):
-            return False
-        known = self._sig[g]
-        if known is not None:
-            return sig == known
-        if sig == self._T[b.poses].tobytes() + self._P[b.points].tobytes():
-            self._sig[g] = sig
-            return True
-        return False
-
-    def _single(self, b, sig: bytes, H):
-        """Evaluate one block directly (not cached)."""
-        t0 = time.perf_counter()
-        T, P = _unpack(sig, len(b.poses))
-        s, e = b.start, b.end
-        pl = np.searchsorted(b.poses, self._obs_pose[s:e])
-        ll = np.searchsorted(b.points, self._obs_point[s:e])
-        rows = slice(s, e)
-        R, t, p = T[pl, :3, :3], T[pl, :3, 3], P[ll]
-        if H is None:
-            out = self._compute(rows, R, t, p, False)[0].ravel()
-        else:
-            _, e_lin, J_pose, J_point = self._compute(rows, R, t, p, True)
-            self._fill_jacobians(b, H, J_pose, J_point)
-            out = e_lin.ravel()
-        self.stats["single"] += 1
-        self._spent_s += time.perf_counter() - t0
-        return out
-
-    def _fill_jacobians(self, b, H, J_pose, J_point) -> None:
-        """Hand block ``b``'s Jacobian blocks (non-zeros ``J_pose`` (m, 2, 6), ``J_point``
-        (m, 2, 3), observation order) to GTSAM's ``H``, zero-padded, one per key."""
-        staging = b.staging or self._staged(b)
-        staging.write(J_pose, J_point)
-        if isinstance(H, gtsam.JacobianVector):
-            H[:] = staging.native  # one C++ copy of all blocks
-        else:  # a Python list keeps what it is given: new arrays
-            for q in range(len(staging.native)):
-                H[q] = np.array(staging.native[q], order="F")
-
-    def _staged(self, b) -> _Staging:
-        """The staging area of block ``b``'s sparsity pattern (made on first use)."""
-        staging = self._staging.get(b.pattern)
-        if staging is None:
-            staging = self._staging[b.pattern] = _Staging(*b.pattern)
-        b.staging = staging
-        return staging
-
-    def _read_variables(self, values) -> tuple[np.ndarray, np.ndarray]:
-        """Every pose (n_poses, 4, 4) and landmark (n_points, 3) of the set; NaN if absent.
-
-        Poses in one C++ call (``gtsam.utilities.extractPose3``: every ``Pose3`` of
-        ``values`` in key order, rows ``[R row-major, t]``, the same numbers as
-        ``Pose3.matrix()``); landmarks one call each.
-        """
-        T = np.full_like(self._T, np.nan)
-        rows = gtsam.utilities.extractPose3(values)
-        keys = gtsam.utilities.allPose3s(values).keys()
-        cached = self._pose_rows
-        if cached is None or len(cached[0]) != len(keys) or cached[0].tolist() != keys:
-            arr = np.array(keys, dtype=np.uint64)
-            at = np.minimum(np.searchsorted(arr, self._pose_key_arr), max(len(arr) - 1, 0))
-            found = np.flatnonzero(arr[at] == self._pose_key_arr) if len(arr) else at[:0]
-            cached = self._pose_rows = (arr, found, at[found])
-        _, found, at = cached
-        if len(found):
-            T[found, :3, :3] = rows[at, :9].reshape(-1, 3, 3)
-            T[found, :3, 3] = rows[at, 9:12]
-            T[found, 3] = (0.0, 0.0, 0.0, 1.0)
-        try:
-            P = np.array([values.atPoint3(k) for k in self._point_keys], float).reshape(-1, 3)
-        except RuntimeError:  # absent (NaN) or not a Point3 (raised below, as before)
-            P = np.full_like(self._P, np.nan)
-            for i, k in enumerate(self._point_keys):
-                if values.exists(k):
-                    P[i] = values.atPoint3(k)
-        return T, P
-
-    def _full_pass(self, values, linear: bool, token: object | None = None) -> None:
-        """Read every variable, re-evaluate every block whose variables changed.
-
-        ``token``: that of the trusted pass whose ``values`` these are (None
-        outside one); the cache then serves that pass without reading variables.
-        """
-        t0 = time.perf_counter()
-        T, P = self._read_variables(values)
-        missing_pose = np.isnan(T[:, 0, 0])
-        missing_point = np.isnan(P[:, 0])
-        changed_pose = ~(T == self._T).all((1, 2))
-        changed_point = ~(P == self._P).all(1)
-        starts = self._start[:-1]
-        changed = np.logical_or.reduceat(
-            changed_pose[self._obs_pose] | changed_point[self._obs_point], starts
-        )
-        missing = np.logical_or.reduceat(
-            missing_pose[self._obs_pose] | missing_point[self._obs_point], starts
-        )
-        self._valid_cost &= ~changed
-        self._valid_lin &= ~changed
-        self._sig[changed] = None
-        todo = ~missing & ~(self._valid_lin if linear else self._valid_cost)
-        rows = np.flatnonzero(todo[self._block_of])
-        if len(rows):
-            ip, il = self._obs_pose[rows], self._obs_point[rows]
-            R, t, p = T[ip, :3, :3], T[ip, :3, 3], P[il]
-            e_cost, e_lin, J_pose, J_point = self._compute(rows, R, t, p, linear)
-            self._e_cost[rows] = e_cost
-            self._valid_cost |= todo
-            if linear:
-                self._e_lin[rows] = e_lin
-                self._J_pose[rows] = J_pose
-                self._J_point[rows] = J_point
-                self._valid_lin |= todo
-        self._T, self._P = T, P
-        # the cache now holds `values` for every block (both modes after a linearisation:
-        # a block with Jacobians has its cost); the Jacobians still do if they were
-        # those of the same trusted Values, otherwise they must be checked
-        if linear or (token is not None and self._ready[1] is token):
-            self._ready[1] = token
-        else:
-            self._ready[1] = None
-        self._ready[0] = token
-        self._spent_s = 0.0
-        self._full_pass_s = time.perf_counter() - t0
-        self.stats["full_passes"] += 1
-
-
-def _unpack(sig: bytes, n_poses: int) -> tuple[np.ndarray, np.ndarray]:
-    """Pose matrices (n_poses, 4, 4) and landmarks (k, 3) from a block signature."""
-    flat = np.frombuffer(sig, dtype=float)
-    return flat[: 16 * n_poses].reshape(-1, 4, 4), flat[16 * n_poses :].reshape(-1, 3)
-
-
-@dataclass
-class _Block:
-    """Rows ``start:end`` (block order) of one CustomFactor and views of its cached results."""
-
-    start: int
-    end: int
-    poses: np.ndarray  # indices into the set's pose keys (sorted)
-    points: np.ndarray  # indices into the set's landmark keys (sorted)
-    pose_keys: list
-    point_keys: list
-    pattern: tuple  # (n_points, n_poses, point slot per obs, pose slot per obs): _Staging
-    e_cost: np.ndarray  # (2m,) view of the cached cost residuals
-    e_lin: np.ndarray  # (2m,) view of the cached linearised residuals
-    J_pose: np.ndarray  # (m, 2, 6) view of the cached pose Jacobians
-    J_point: np.ndarray  # (m, 2, 3) view of the cached landmark Jacobians
-    staging: _Staging | None = None  # that of `pattern`, once linearised
-
-
-class _Staging:
-    """Zero-padded Jacobian blocks of one sparsity pattern, held in C++.
-
-    A block's Jacobian over its keys ``[landmarks..., poses...]`` is zero except
-    rows ``2k, 2k+1`` of observation ``k`` in the columns of its landmark and its
-    pose. Every block of a pattern (the same number of keys and the same key slot
-    per observation) writes the same positions, so one ``gtsam.JacobianVector``
-    serves them all: a callback writes its non-zeros through numpy views of the C++
-    matrices (the zeros stay from construction) and hands the vector to GTSAM in
-    one C++ copy (``H[:] = native``), instead of converting one array per key.
-    """
-
-    def __init__(self, n_points: int, n_poses: int, point_slot: bytes, pose_slot: bytes):
-        ll = np.frombuffer(point_slot, dtype=np.intp)
-        lp = np.frombuffer(pose_slot, dtype=np.intp)
-        m = len(lp)
-        self.native = gtsam.JacobianVector(
-            [np.zeros((2 * m, 3), order="F")] * n_points
-            + [np.zeros((2 * m, 6), order="F")] * n_poses
-        )
-        views = [self.native[q] for q in range(n_points + n_poses)]
-        for q, view in enumerate(views):  # the views must write into the C++ matrices
-            view[0, 0] = 1.0
-            shared = view.shape[0] == 2 * m and self.native[q][0, 0] == 1.0
-            view[0, 0] = 0.0
-            if not shared:
-                raise RuntimeError("gtsam.JacobianVector gives no writable views of its matrices")
-        self.m = m
-        # one landmark: its block is dense (one copy); else observation k's rows of its
-        # landmark's block; and of its pose's block
-        self.point_all = views[0] if n_points == 1 else None
-        self.point_rows = [views[int(a)][2 * k : 2 * k + 2] for k, a in enumerate(ll)]
-        self.pose_rows = [views[n_points + int(a)][2 * k : 2 * k + 2] for k, a in enumerate(lp)]
-
-    def write(self, J_pose: np.ndarray, J_point: np.ndarray) -> None:
-        """Write the non-zeros of one block: ``J_pose`` (m, 2, 6), ``J_point`` (m, 2, 3)."""
-        if self.point_all is not None:
-            self.point_all[...] = J_point.reshape(2 * self.m, 3)
-        else:
-            for rows, J in zip(self.point_rows, J_point):
-                rows[...] = J
-        for rows, J in zip(self.pose_rows, J_pose):
-            rows[...] = J
 
 
 def _landmark_groups(point_keys: np.ndarray, max_obs: int) -> list[np.ndarray]:
@@ -1039,163 +583,3 @@ def make_bearing_factors(
             models[s] = model
         factors.append(gtsam.BearingFactor3D(int(pk[k]), int(lk[k]), gtsam.Unit3(rays[k]), model))
     return factors
-
-
-# --------------------------------------------------------------------------- optimising
-
-#: (values, token, jacobians) while levenberg_marquardt evaluates a Values it owns
-_TRUSTED_PASS: tuple | None = None
-
-
-class _Trusted:
-    """Context for the passes (linearisations, evaluations) of a graph at ``values``.
-
-    The promise: ``values`` is not modified from the construction of this object
-    on, so a cache validated in one of its passes serves every later one. With
-    ``jacobians``, an evaluation may also compute the Jacobians (a linearisation
-    at the same values is expected next).
-    """
-
-    def __init__(self, values: gtsam.Values, jacobians: bool = False) -> None:
-        self.values = values
-        self.token = object()
-        self.jacobians = jacobians
-
-    def __enter__(self):
-        global _TRUSTED_PASS
-        _TRUSTED_PASS = (self.values, self.token, self.jacobians)
-        return self.values
-
-    def __exit__(self, *exc) -> None:
-        global _TRUSTED_PASS
-        _TRUSTED_PASS = None
-
-
-def levenberg_marquardt(
-    graph: gtsam.NonlinearFactorGraph,
-    initial: gtsam.Values,
-    params: gtsam.LevenbergMarquardtParams | None = None,
-) -> tuple[gtsam.Values, dict]:
-    """Levenberg-Marquardt driven from Python, for graphs holding many ``CustomFactor`` s.
-
-    Why: GTSAM's C++ optimisers hand their internal ``gtsam.Values`` to every
-    ``CustomFactor`` callback, and the Python wrapper (pybind11) copies a
-    ``Values`` that Python does not own before each call. Inside
-    ``gtsam.LevenbergMarquardtOptimizer`` a callback therefore costs time
-    proportional to the number of variables, and a graph of Python factors
-    costs ``O(factors x variables)`` per iteration (measured: 22 us per
-    callback with 100 variables, 2.3 ms with 10,000). This loop linearises
-    and evaluates the graph on Python-owned ``Values`` (no copy) and leaves the
-    damping, elimination and retraction to GTSAM's C++. For ``gtsam.ISAM2``,
-    hold ``isam.getLinearizationPoint()`` (a reference to its internal
-    ``Values``) in a variable for as long as the ``ISAM2`` lives: the callbacks
-    then receive that registered object instead of a copy.
-
-    The algorithm is GTSAM's default LM: damping ``lambda * I`` on every
-    variable, ``lambda`` divided by ``lambdaFactor`` after an accepted step
-    and multiplied after a rejected one, COLAMD ordering computed once,
-    multifrontal elimination (Cholesky preferred), convergence on the
-    relative or absolute decrease of the error as in
-    ``gtsam.checkConvergence``; an indeterminate linear system counts as a
-    rejected step (``lambda`` grows), as in GTSAM.
-
-    :class:`ProjectionBlocks` factors are evaluated once per pass, all blocks
-    in one numpy call. The cost evaluation of an iteration's first trial step
-    also computes their Jacobians (LM usually accepts it, and the next
-    linearisation is at that point), so the linearisation at an accepted step
-    only hands the Jacobians over; a rejected step costs that extra work once.
-
-    Parameters
-    ----------
-    graph : gtsam.NonlinearFactorGraph
-    initial : gtsam.Values
-        Not modified.
-    params : gtsam.LevenbergMarquardtParams or None
-        ``maxIterations``, ``relativeErrorTol``, ``absoluteErrorTol``,
-        ``errorTol``, ``lambdaInitial``, ``lambdaFactor``,
-        ``lambdaLowerBound``, ``lambdaUpperBound`` are used; GTSAM's defaults if None.
-
-    Returns
-    -------
-    values : gtsam.Values
-    info : dict
-        ``iterations``, ``initial_error``, ``error``, ``lambda``,
-        ``iteration_s`` (list of wall-clock seconds per iteration, float),
-        ``converged`` (bool).
-    """
-    p = params or gtsam.LevenbergMarquardtParams()
-    values = gtsam.Values(initial)
-    # the passes at one Values share a _Trusted (no Values is modified here), and the
-    # evaluation of a point LM may step to next computes its Jacobians on the way
-    passes = _Trusted(values, jacobians=True)
-    with passes:
-        error = graph.error(values)
-    info = {"initial_error": error, "iteration_s": [], "converged": False}
-    lam = p.getlambdaInitial()
-    zero = values.zeroVectors()
-    # lambda * I on every variable: one factor per variable, built once; each trial only
-    # sets its sigma 1 / sqrt(lambda) (setModel gives the Isotropic model of equal sigmas)
-    damping = gtsam.GaussianFactorGraph()
-    dims = []
-    for k in values.keys():
-        d = len(zero.at(k))
-        damping.add(
-            gtsam.JacobianFactor(k, np.eye(d), np.zeros(d), gtsam.noiseModel.Unit.Create(d))
-        )
-        dims.append(d)
-    # the graph's own factors (add() stores a copy): setModel acts on what the solver sees
-    damping_dims = [(damping.at(q), d) for q, d in enumerate(dims)]
-    ordering = None
-    for _ in range(p.getMaxIterations()):
-        t0 = time.perf_counter()
-        with passes:
-            lin = graph.linearize(values)
-        if ordering is None:
-            ordering = gtsam.Ordering.Colamd(gtsam.VariableIndex(lin))
-        lin_zero_error = lin.error(zero)
-        accepted = False
-        first_trial = True  # after a rejected step, evaluate the next trials' cost only
-        while lam <= p.getlambdaUpperBound():
-            sigma = 1.0 / math.sqrt(lam)
-            sigmas: dict[int, np.ndarray] = {}
-            for factor, d in damping_dims:
-                sig = sigmas.get(d)
-                if sig is None:
-                    sig = sigmas[d] = np.full(d, sigma)
-                factor.setModel(False, sig)
-            damped = gtsam.GaussianFactorGraph()
-            damped.push_back(lin)
-            damped.push_back(damping)
-            try:
-                delta = damped.optimize(ordering)
-            except RuntimeError as exc:  # as GTSAM's LM: an indeterminate system is a failed step
-                if "ndeterminate" not in str(exc):
-                    raise
-                lam *= p.getlambdaFactor()
-                continue
-            predicted = lin_zero_error - lin.error(delta)
-            trial = values.retract(delta)
-            trial_passes = _Trusted(trial, jacobians=first_trial)
-            first_trial = False
-            with trial_passes:
-                trial_error = graph.error(trial)
-            if trial_error < error and predicted > 0:
-                lam = max(lam / p.getlambdaFactor(), p.getlambdaLowerBound())
-                accepted = True
-                break
-            lam *= p.getlambdaFactor()
-        info["iteration_s"].append(time.perf_counter() - t0)
-        if not accepted:
-            info["converged"] = True  # no decrease possible: at a minimum within tolerance
-            break
-        decrease = error - trial_error
-        values, error, passes = trial, trial_error, trial_passes
-        if (
-            decrease < p.getAbsoluteErrorTol()
-            or decrease < p.getRelativeErrorTol() * (error + decrease)
-            or error < p.getErrorTol()
-        ):
-            info["converged"] = True
-            break
-    info.update(iterations=len(info["iteration_s"]), error=error, **{"lambda": lam})
-    return values, info

@@ -10,8 +10,8 @@ Variables (``docs/conventions.md``):
 Observations are grouped into :class:`ObservationBlock` factors, each a
 ``gtsam.CustomFactor``: free targets in tiles of a few targets by a few
 images seeing them, exact-control targets per image. The blocks of one graph
-are evaluated together, in one vectorised numpy pass per ``Values``
-(:class:`_SharedEvaluation`). Robust weighting stays per
+are evaluated together, in one vectorised numpy pass per ``Values``, by the
+package's one factor engine (:mod:`~gtsam_sphere.estimation.engine`). Robust weighting stays per
 observation: each observation's 2-vector residual is weighted by the
 M-estimator on its own norm, exactly as ``gtsam.noiseModel.Robust`` would do
 for a single-observation factor (IRLS weights ``sqrt(w)`` on the linear system,
@@ -30,11 +30,10 @@ import gtsam
 import numpy as np
 
 from ..core._compat import StrEnum
-from ..core.camera import sphere_residual
 from ..core.errors import DatasetError
 from ..core.robust import Loss as Loss  # re-exported: the loss of NoiseOptions
 from ..core.robust import robust_sigma_px as robust_sigma_px  # re-exported
-from ..core.robust import robust_weight, whitening_scale
+from .engine import BundleMeasurement, FactorEngine, ProjectionModel, Whitener
 
 
 def pose_key(i: int) -> int:
@@ -86,295 +85,19 @@ class NoiseOptions:
     loss_threshold: float = 2.45
 
 
-#: ``Values.extract(keys)`` (GTSAM 4.3's Python): without it, blocks are evaluated alone
-_VALUES_EXTRACT = hasattr(gtsam.Values, "extract")
-
-
-class _SharedEvaluation:
-    """One vectorised evaluation of all observations of a set of blocks, per ``Values``.
-
-    GTSAM linearises (or evaluates) a graph by calling every factor's callback
-    in turn with the same ``Values``. The first callback of a set evaluates all
-    its observations in one numpy pass; the others read their slices.
-
-    A stored evaluation serves a block only if the ``Values`` the callback
-    receives holds, for every key of that block, exactly the numbers of the
-    snapshot the evaluation was computed from (``Values.equals`` with tolerance
-    0 on the block's keys: same keys, same types, IEEE-equal numbers). A block's
-    result depends on nothing else, so a stored answer is the answer; the
-    identity of the ``Values`` is never used. States with a non-finite number
-    (which ``equals`` matches loosely: NaN to NaN, +inf to -inf) are not stored:
-    the block is then evaluated alone.
-
-    Jacobians go to one persistent buffer holding every block's zero-padded,
-    Fortran-ordered Jacobian blocks: the zeros are written once, here, and an
-    evaluation writes the non-zeros only (one scatter for the whole set). Each
-    block also keeps a C++ copy of its blocks (a ``gtsam.JacobianVector``): a
-    callback refreshes it with one numpy copy per key and hands it to GTSAM in
-    one C++ copy (``H[:] = ...``), cheaper than converting an array per key.
-
-    Parameters
-    ----------
-    blocks : list of ObservationBlock
-        Blocks of one model (same measurement model and noise options).
-    """
-
-    def __init__(self, blocks: list[ObservationBlock]):
-        first = blocks[0]
-        model = (
-            first.brown_names,
-            first.brown_scale_px,
-            first.noise,
-            first.radial_names,
-            first.intrinsics_key,
-            first.radial_warp,
-        )
-        for b in blocks:
-            if (
-                b.brown_names,
-                b.brown_scale_px,
-                b.noise,
-                b.radial_names,
-                b.intrinsics_key,
-                b.radial_warp,
-            ) != model:
-                raise ValueError("blocks sharing an evaluation must share model, noise, intrinsics")
-        (self.brown_names, self.brown_scale_px, self.noise, self.radial_names) = model[:4]
-        self.intrinsics_key = model[4]
-        self.radial_warp = model[5]
-        self.pose_keys = sorted({k for b in blocks for k in b.pose_keys})
-        self.point_keys = sorted({k for b in blocks for k in b.point_keys})
-        self.extrinsic_keys = sorted({k for b in blocks for k in b.extrinsic_keys})
-        self.all_keys = sorted(
-            {*self.pose_keys, *self.point_keys, *self.extrinsic_keys, self.intrinsics_key}
-        )
-        pose_sorted = np.array(self.pose_keys, np.int64)
-        point_sorted = np.array(self.point_keys, np.int64)
-        extrinsic_sorted = np.array(self.extrinsic_keys, np.int64)
-        n_theta = 3 + len(self.radial_names or ()) + len(self.brown_names)
-        self.n_theta = n_theta
-        # columns of an observation's Jacobian: [omega, v] of its pose, its point, theta,
-        # and, when some observation of the set composes an extrinsic pose, [omega, v] of it
-        n_ext = 6 if self.extrinsic_keys else 0
-        starts = np.cumsum([0] + [b.n for b in blocks]).tolist()
-        self.n = starts[-1]
-        self.obs_slices = [slice(a, b) for a, b in zip(starts, starts[1:])]
-        self.row_slices = [slice(2 * a, 2 * b) for a, b in zip(starts, starts[1:])]
-        gp, gq, ge = [], [], []
-        # buffer position of d(e_a)/d[omega, v, point, theta, (omega_e, v_e)]_c of
-        # observation n at [a, c, n]
-        pos = np.empty((2, 9 + n_theta + n_ext, self.n), np.intp)
-        layout = []  # per block: (offset, columns) of each key's block
-        size = 0
-        for b, s in zip(blocks, starts):
-            rows = 2 * b.n
-            n_pt, n_ps, n_ex = len(b.point_keys), len(b.pose_keys), len(b.extrinsic_keys)
-            cols = [3] * n_pt + [6] * n_ps + [6] * n_ex + [n_theta]
-            offsets = size + rows * np.concatenate([[0], np.cumsum(cols)[:-1]])
-            layout.append(list(zip(offsets.tolist(), cols)))
-            size += rows * sum(cols)
-            r = 2 * np.arange(b.n) + np.arange(2)[:, None, None]  # row of e_a, (2, 1, n)
-            col = rows * np.arange(9 + n_theta)[:, None]  # column offsets, (9 + n_theta, 1)
-            sl = slice(s, s + b.n)
-            pos[:, :6, sl] = offsets[n_pt + b.pose_local] + col[:6] + r
-            pos[:, 6:9, sl] = offsets[np.maximum(b.point_local, 0)] + col[:3] + r
-            pos[:, 9 : 9 + n_theta, sl] = offsets[-1] + col[:n_theta] + r
-            if n_ext:
-                ext = offsets[n_pt + n_ps + np.maximum(b.extrinsic_local, 0)]
-                pos[:, 9 + n_theta :, sl] = ext + col[:6] + r
-            keys = np.array(b.pose_keys, np.int64)[b.pose_local]
-            gp.append(np.searchsorted(pose_sorted, keys))
-            keys = np.array(b.point_keys + [0], np.int64)[b.point_local]  # -1: the dummy 0
-            gq.append(np.where(b.free, np.searchsorted(point_sorted, keys), -1))
-            keys = np.array(b.extrinsic_keys + [0], np.int64)[b.extrinsic_local]
-            ge.append(np.where(b.composed, np.searchsorted(extrinsic_sorted, keys), -1))
-        # fixed (exact control) observations write their point columns, and observations
-        # without an extrinsic pose their extrinsic columns, to a trash area
-        free = np.concatenate([b.free for b in blocks])
-        pos[:, 6:9, ~free] = size + 3 * np.arange(2)[:, None, None] + np.arange(3)[:, None]
-        composed = np.concatenate([b.composed for b in blocks])
-        if n_ext:
-            trash = size + 6 + 6 * np.arange(2)[:, None, None] + np.arange(6)[:, None]
-            pos[:, 9 + n_theta :, ~composed] = trash
-        self.pos = pos
-        self.buf = np.zeros(size + 18)
-        self.views = [
-            [self.buf[o : o + c * 2 * b.n].reshape(c, 2 * b.n).T for o, c in lay]
-            for b, lay in zip(blocks, layout)
-        ]
-        self.gp = np.concatenate(gp).astype(np.intp)
-        self.gq = np.concatenate(gq).astype(np.intp)
-        # -1 (no extrinsic pose) picks the identity appended after the extrinsic poses
-        self.ge = np.concatenate(ge).astype(np.intp)
-        self.free = free
-        self.all_free = bool(free.all())
-        self.composed = composed
-        self.fixed_xyz = np.concatenate([b.fixed_xyz for b in blocks]).T.copy()  # (3, n)
-        self.uv_px = np.concatenate([b.uv_px for b in blocks])
-        self.snapshot: gtsam.Values | None = None  # the Values of the stored evaluation
-        self.rejected: gtsam.Values | None = None  # the last non-finite state
-        self.has_jacobians = False
-        self.e_px = self.e_cost = self.e_lin = np.zeros(0)
-        self._native: list[tuple[gtsam.JacobianVector, list[np.ndarray]] | None] = [None] * len(
-            blocks
-        )
-
-    def native(self, index: int) -> tuple[gtsam.JacobianVector, list[np.ndarray]]:
-        """Block ``index``'s C++ Jacobian blocks and writable numpy views of them."""
-        if self._native[index] is None:
-            native = gtsam.JacobianVector(self.views[index])
-            self._native[index] = (native, [native[q] for q in range(len(native))])
-        return self._native[index]
-
-    def ready(self, keys: list[int], values: gtsam.Values, jacobians: bool) -> bool:
-        """Make the stored evaluation valid for the block of ``keys`` at ``values``.
-
-        Returns False when it cannot be stored (a key of the set is missing
-        from ``values``, or a number is not finite): evaluate the block alone.
-        """
-        snap = self.snapshot
-        if (
-            snap is not None
-            and (self.has_jacobians or not jacobians)
-            and values.extract(keys).equals(snap.extract(keys), 0.0)
-        ):
-            return True
-        if self.rejected is not None and values.extract(keys).equals(
-            self.rejected.extract(keys), 0.0
-        ):
-            return False  # the non-finite state met just before: no second try
-        self.snapshot = self.rejected = None
-        try:
-            snap = values.extract(self.all_keys)
-        except RuntimeError:
-            return False
-        if not self._compute(snap, jacobians):
-            self.rejected = snap
-            return False
-        self.snapshot, self.has_jacobians = snap, jacobians
-        return True
-
-    def compute(self, values: gtsam.Values, jacobians: bool) -> None:
-        """Evaluate at ``values``, not stored (a block evaluated alone)."""
-        self.snapshot = self.rejected = None
-        self._compute(values, jacobians)
-
-    def _compute(self, values: gtsam.Values, jacobians: bool) -> bool:
-        """Evaluate every observation; returns whether all inputs were finite.
-
-        An observation's camera pose is ``world_from_cam = A`` (its pose key) or, when it
-        has an extrinsic key, ``world_from_cam = A * B`` (``A = world_from_rig``, ``B =
-        rig_from_cam``). With ``q = A^-1 p`` the point in the frame of ``A`` and
-        ``pc = B^-1 q``, right perturbations ``A exp(dA)``, ``B exp(dB)`` give
-        ``d pc / d omega_B = [pc]x``, ``d pc / d v_B = -I`` and ``d pc / d dA = R_B^T
-        (d q / d dA)`` with ``d q / d omega_A = [q]x``, ``d q / d v_A = -I``, which is
-        the chain rule through ``d(A B) / d dA = Ad(B^-1)``.
-        """
-        T = _extract_poses(values, self.pose_keys)  # R (by rows), t
-        E = _extract_poses(values, self.extrinsic_keys) if self.extrinsic_keys else None
-        if _VALUES_EXTRACT:
-            P = np.zeros((0, 3))
-            if self.point_keys:
-                P = gtsam.utilities.extractPoint3(values.extract(self.point_keys))
-            if P.shape[0] != len(self.point_keys):
-                raise TypeError("pose keys must hold Pose3 values and target keys Point3 values")
-        else:
-            P = np.array([values.atPoint3(k) for k in self.point_keys]).reshape(-1, 3)
-        theta = values.atVector(self.intrinsics_key)
-        # one row per component, one column per observation
-        Tn = np.ascontiguousarray(T.T)[:, self.gp]
-        R = Tn[:9].reshape(3, 3, self.n)  # R[i, j] = (R_wc)_ij
-        if self.all_free:
-            pw = np.ascontiguousarray(P.T)[:, self.gq]
-        else:
-            pw = self.fixed_xyz.copy()
-            pw[:, self.free] = P.T[:, self.gq[self.free]]
-        d = pw - Tn[9:]
-        q = R[0] * d[0] + R[1] * d[1] + R[2] * d[2]  # R_wc^T (p_world - t)
-        pc = q
-        if E is not None:
-            En = np.ascontiguousarray(np.vstack([E, _IDENTITY_POSE]).T)[:, self.ge]
-            Rb = En[:9].reshape(3, 3, self.n)  # rig_from_cam rotation (identity: none)
-            db = q - En[9:]
-            pc = Rb[0] * db[0] + Rb[1] * db[1] + Rb[2] * db[2]  # R_rc^T (q - t_rc)
-        out = sphere_residual(
-            theta,
-            self.brown_names,
-            self.brown_scale_px,
-            self.uv_px,
-            pc.T,
-            jacobians=jacobians,
-            radial_names=self.radial_names,
-            warp=self.radial_warp,
-        )
-        e = out[0] if jacobians else out
-        sigma = self.noise.sigma_px
-        r = np.sqrt((e * e).sum(1)) / sigma
-        w, rho = robust_weight(r, self.noise.loss, self.noise.loss_threshold)
-        cost_scale = whitening_scale(r, rho) / sigma
-        self.e_px = e
-        self.e_cost = (e * cost_scale[:, None]).ravel()
-        if jacobians:
-            _, J_theta, J_pc = out
-            scale = np.sqrt(w) / sigma
-            self.e_lin = (e * scale[:, None]).ravel()
-            J = np.empty(self.pos.shape)  # [row u/v, column, observation]
-            Jc = J[:, 3:6]
-            np.multiply(J_pc.transpose(1, 2, 0), scale, out=Jc)  # weighted d(e)/d(pc)
-            if E is not None:
-                c0 = 9 + self.n_theta
-                _rows_cross(Jc, pc, J[:, c0 : c0 + 3])  # d(e)/d(omega_B) = J_pc [pc]x
-                np.negative(Jc, out=J[:, c0 + 3 : c0 + 6])  # d(e)/d(v_B) = -J_pc
-                # d(e)/d(q) = J_pc R_B^T, in place of d(e)/d(pc) (the identity if no B)
-                Jc[...] = np.einsum("akn,jkn->ajn", Jc, Rb)
-            # d(e)/d(omega) = J_q [q]x: row by row, the cross product (row x q)
-            _rows_cross(Jc, q, J[:, 0:3])
-            # d(e)/d(p_world) = J_q R_wc^T
-            Jp = J[:, 6:9]
-            np.multiply(Jc[:, 0, None], R[:, 0], out=Jp)
-            Jp += Jc[:, 1, None] * R[:, 1]
-            Jp += Jc[:, 2, None] * R[:, 2]
-            np.negative(Jc, out=Jc)  # d(q)/d(v) = -I
-            np.multiply(J_theta.transpose(1, 2, 0), scale, out=J[:, 9 : 9 + self.n_theta])
-            self.buf[self.pos] = J
-        finite = np.isfinite(T).all() and np.isfinite(P).all() and np.isfinite(theta).all()
-        return bool(finite and (E is None or np.isfinite(E).all()))
-
-
-#: a ``Pose3`` as a row of ``gtsam.utilities.extractPose3``: the identity
-_IDENTITY_POSE = np.concatenate([np.eye(3).ravel(), np.zeros(3)])[None]
-
-
-def _extract_poses(values: gtsam.Values, keys: list[int]) -> np.ndarray:
-    """``Pose3`` values of ``keys`` (sorted) as rows ``[R (by rows), t]``, (n, 12)."""
-    if _VALUES_EXTRACT:
-        T = gtsam.utilities.extractPose3(values.extract(keys))
-        if T.shape[0] != len(keys):
-            raise TypeError("pose keys must hold Pose3 values and target keys Point3 values")
-        return T
-    M = [values.atPose3(k).matrix() for k in keys]
-    return np.array([np.concatenate([m[:3, :3].ravel(), m[:3, 3]]) for m in M]).reshape(-1, 12)
-
-
-def _rows_cross(J: np.ndarray, p: np.ndarray, out: np.ndarray) -> None:
-    """``out[a, :, n] = J[a, :, n] x p[:, n]``: ``J [p]x`` of rows ``J`` (2, 3, n), ``p`` (3, n)."""
-    px, py, pz = p
-    np.multiply(J[:, 1], pz, out=out[:, 0])
-    out[:, 0] -= J[:, 2] * py
-    np.multiply(J[:, 2], px, out=out[:, 1])
-    out[:, 1] -= J[:, 0] * pz
-    np.multiply(J[:, 0], py, out=out[:, 2])
-    out[:, 2] -= J[:, 1] * px
-
-
 class ObservationBlock:
     """A vectorised group of observations behind one ``gtsam.CustomFactor``.
 
-    Blocks built together (:meth:`share_evaluation`, as :class:`BundleProblem`
-    does) are evaluated together: the first callback at a given ``Values``
-    evaluates all their observations in one numpy pass and the others read
-    their part of it (exactly, see :class:`_SharedEvaluation`). A block on its
-    own evaluates its own observations at every call.
+    The bundle graph's use of the one factor engine
+    (:class:`~gtsam_sphere.estimation.engine.FactorEngine`, with a
+    :class:`~gtsam_sphere.estimation.engine.ProjectionModel` whose measurement is
+    :class:`~gtsam_sphere.estimation.engine.BundleMeasurement`: the intrinsics a
+    variable). Blocks built together (:meth:`share_evaluation`, as
+    :class:`BundleProblem` does) share one engine: the first callback at a given
+    ``Values`` evaluates all their observations whose variables changed in one
+    numpy pass and the others read their part of it (exactly: a stored result
+    serves a block only at bit-identical variables). A block on its own has an
+    engine of its own.
 
     Parameters
     ----------
@@ -444,35 +167,73 @@ class ObservationBlock:
         self.composed = self.extrinsic_local >= 0
         self.intrinsics_key = int(intrinsics_key)
         self.keys = self.point_keys + self.pose_keys + self.extrinsic_keys + [self.intrinsics_key]
-        self._shared: _SharedEvaluation | None = None
+        self._engine: FactorEngine | None = None
         self._index = 0
-        self._alone: _SharedEvaluation | None = None
+
+    def _model_id(self) -> tuple:
+        return (
+            self.brown_names,
+            self.brown_scale_px,
+            self.noise,
+            self.radial_names,
+            self.intrinsics_key,
+            self.radial_warp,
+        )
 
     @staticmethod
     def share_evaluation(blocks: list[ObservationBlock]) -> None:
-        """Evaluate ``blocks`` together from now on (one numpy pass per ``Values``)."""
-        if blocks and _VALUES_EXTRACT:
-            shared = _SharedEvaluation(blocks)
-            for i, b in enumerate(blocks):
-                b._shared, b._index = shared, i
+        """Evaluate ``blocks`` together from now on: one engine, one numpy pass per ``Values``.
+
+        The blocks must share the measurement model, noise options and intrinsics key.
+        """
+        if not blocks:
+            return
+        model_id = blocks[0]._model_id()
+        if any(b._model_id() != model_id for b in blocks):
+            raise ValueError("blocks sharing an evaluation must share model, noise, intrinsics")
+        first = blocks[0]
+        measurement = BundleMeasurement(
+            np.concatenate([b.uv_px for b in blocks]),
+            first.brown_names,
+            first.brown_scale_px,
+            first.radial_names,
+            first.radial_warp,
+        )
+        extrinsics = any(b.extrinsic_keys for b in blocks)
+        fixed = None  # every point a variable
+        if not all(b.free.all() for b in blocks):
+            fixed = np.concatenate([b.fixed_xyz for b in blocks])
+        model = ProjectionModel(measurement, fixed, extrinsics)
+        specs = []
+        for b in blocks:
+            keys = [b.pose_keys, b.point_keys, [b.intrinsics_key]]
+            local = [b.pose_local, b.point_local, np.zeros(b.n, np.intp)]
+            if extrinsics:
+                keys.append(b.extrinsic_keys)
+                local.append(b.extrinsic_local)
+            specs.append((keys, local))
+        noise = first.noise
+        whitener = Whitener.isotropic(noise.sigma_px, noise.loss, noise.loss_threshold)
+        engine = FactorEngine.from_blocks(model, specs, whitener)
+        for i, b in enumerate(blocks):
+            b._engine, b._index = engine, i
+
+    def engine(self) -> tuple[FactorEngine, int]:
+        """The engine evaluating this block and the block's index in it."""
+        if self._engine is None:
+            ObservationBlock.share_evaluation([self])
+        return self._engine, self._index
 
     def factor(self) -> gtsam.CustomFactor:
         """The ``gtsam.CustomFactor`` (unit noise: whitening is done inside)."""
-        model = gtsam.noiseModel.Unit.Create(2 * self.n)
-        return gtsam.CustomFactor(model, self.keys, self.evaluate)
-
-    def _evaluation(self, values: gtsam.Values, jacobians: bool) -> tuple[_SharedEvaluation, int]:
-        """The evaluation holding this block's results at ``values``, and its index there."""
-        shared = self._shared
-        if shared is not None and shared.ready(self.keys, values, jacobians):
-            return shared, self._index
-        if self._alone is None:
-            self._alone = _SharedEvaluation([self])
-        self._alone.compute(values, jacobians)
-        return self._alone, 0
+        engine, i = self.engine()
+        return engine.factor(i)
 
     def state(self, values: gtsam.Values):
-        """Camera-frame points (n,3), rotations R_wc (n,3,3) and theta from ``values``."""
+        """Camera-frame points (n, 3), rotations ``R_wc`` (n, 3, 3) and theta (K,) at ``values``.
+
+        Composed with GTSAM's own ``Pose3`` products (a reference for the engine's).
+        """
         T = np.array([values.atPose3(k).matrix() for k in self.pose_keys])[self.pose_local]
         if self.extrinsic_keys:
             E = np.array([values.atPose3(k).matrix() for k in self.extrinsic_keys])
@@ -488,8 +249,8 @@ class ObservationBlock:
 
     def residuals_px(self, values: gtsam.Values) -> np.ndarray:
         """Unweighted residuals ``measured - predicted`` (n, 2) px."""
-        ev, i = self._evaluation(values, False)
-        return ev.e_px[ev.obs_slices[i]].copy()
+        engine, i = self.engine()
+        return engine.residuals_px(values, i)
 
     def evaluate(self, this, values: gtsam.Values, H):
         """CustomFactor callback: whitened, robustly weighted error (2n,).
@@ -499,19 +260,8 @@ class ObservationBlock:
         system ``sqrt(w) * e / sigma`` and ``H`` receives the matching
         Jacobian blocks, Fortran-ordered, one per key.
         """
-        ev, i = self._evaluation(values, H is not None)
-        if H is None:
-            return ev.e_cost[ev.row_slices[i]].copy()
-        if isinstance(H, gtsam.JacobianVector):
-            # one C++ copy of all blocks (H[q] = array per key costs a conversion each)
-            native, targets = ev.native(i)
-            for target, block in zip(targets, ev.views[i]):
-                np.copyto(target, block)
-            H[:] = native
-        else:  # a Python list keeps the arrays: give it its own
-            for q, block in enumerate(ev.views[i]):
-                H[q] = block.copy(order="F")
-        return ev.e_lin[ev.row_slices[i]].copy()
+        engine, i = self.engine()
+        return np.array(engine.callback(i)(this, values, H), copy=True)
 
 
 class NormalOffsetFactor:

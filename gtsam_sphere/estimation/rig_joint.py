@@ -41,6 +41,7 @@ import numpy as np
 
 from ..core.camera import WARP_TERM, SphereCamera
 from ..core.geometry import fit_similarity
+from ..core.robust import robust_weight
 from ..io.calibration import Calibration
 from ..io.dataset import RigDataset
 from .graph import (
@@ -54,7 +55,6 @@ from .graph import (
     point_key,
     pose_key,
     robust_sigma_px,
-    robust_weight,
 )
 from .optimize import OptimizationResult, OptimizerOptions, make_ordering, optimize
 
