@@ -264,8 +264,11 @@ def adjust(
         if not estimate_sigma:
             break
         r = np.linalg.norm(problem.residuals_px(result.values), axis=1)
-        sigma = robust_sigma_px(r, MIN_SIGMA_PX)
         old = problem.noise.sigma_px
+        # standardised by each observation's redundancy: the residuals of targets seen
+        # in one image (absorbed by the target) would otherwise pull the scale to zero
+        redundancy = problem.observation_redundancy(result.values, old)
+        sigma = robust_sigma_px(r, MIN_SIGMA_PX, redundancy)
         if progress:
             progress(f"{label}robust scale estimate sigma = {sigma:.4f} px (was {old:.4f})")
         problem.noise = NoiseOptions(sigma, loss, problem.noise.loss_threshold)

@@ -51,6 +51,7 @@ from .graph import (
     extrinsics_key,
     frame_key,
     intrinsics_key,
+    observation_redundancy,
     point_key,
     pose_key,
     robust_sigma_px,
@@ -208,6 +209,28 @@ def precision_from_covariance(cov: np.ndarray, t: np.ndarray) -> dict:
     }
 
 
+def rig_redundancy(problems: dict[str, BundleProblem], values: gtsam.Values) -> dict:
+    """Local redundancy (0 to 2) of every camera's observations, (N_c,) per camera.
+
+    As :meth:`BundleProblem.observation_redundancy`, with the information of a target
+    summed over every camera that sees it (the cameras' problems index the rig's
+    targets alike), each observation weighted by its camera's current ``sigma_px``.
+    """
+    ids = list(problems)
+    if not ids:
+        return {}
+    J = [problems[c].target_jacobians(values) for c in ids]
+    sig = [np.full(len(problems[c].uv_px), problems[c].noise.sigma_px) for c in ids]
+    red = observation_redundancy(
+        np.concatenate(J),
+        np.concatenate([problems[c].obs_target for c in ids]),
+        np.concatenate(sig),
+        problems[ids[0]].target_sigma,
+    )
+    bounds = np.cumsum([0] + [len(s) for s in sig])
+    return {c: red[bounds[k] : bounds[k + 1]] for k, c in enumerate(ids)}
+
+
 def adjust_rig_jointly(
     rig: RigDataset,
     calibs: dict[str, Calibration],
@@ -219,6 +242,7 @@ def adjust_rig_jointly(
     loss_threshold: float = 2.45,
     points_per_factor: int = 8,
     fixed_intrinsics: dict[str, np.ndarray] | None = None,
+    fixed_extrinsics: bool = False,
 ) -> JointRigResult:
     """Adjust a rig's frames, extrinsics, intrinsics and targets in one graph.
 
@@ -238,6 +262,11 @@ def adjust_rig_jointly(
     points_per_factor : int
     fixed_intrinsics : dict of str -> ndarray, optional
         Cameras whose intrinsics are held (a tight prior), as ``fixed_intrinsics``.
+    fixed_extrinsics : bool
+        Hold every ``cam_from_rig`` at its starting value (a tight prior): only the
+        frames, the unframed images, the targets and the free intrinsics move (the
+        oracle of a simulated rig, :mod:`gtsam_sphere.simulate.oracle`). Their
+        covariance is then ~0 and not reported.
 
     Returns
     -------
@@ -361,6 +390,14 @@ def adjust_rig_jointly(
                 theta = np.asarray(fixed_intrinsics[cid], float)
                 noise = gtsam.noiseModel.Isotropic.Sigma(len(theta), 1e-9)
                 graph.add(gtsam.PriorFactorVector(intrinsics_key(c), theta, noise))
+            if fixed_extrinsics and c > 0:
+                graph.add(
+                    gtsam.PriorFactorPose3(
+                        extrinsics_key(c),
+                        _gtsam_pose(cam_from_rig[cid]).inverse(),
+                        gtsam.noiseModel.Isotropic.Sigma(6, 1e-9),
+                    )
+                )
         return graph
 
     ordering = make_ordering(
@@ -391,9 +428,10 @@ def adjust_rig_jointly(
         offset = history[-1]["iteration"] + 1 if history else 0
         history += [dict(h, iteration=h["iteration"] + offset, stage=stage) for h in result.history]
         changed = False
-        for p in problems.values():
+        redundancy = rig_redundancy(problems, result.values)
+        for cid, p in problems.items():
             r = np.linalg.norm(p.residuals_px(result.values), axis=1)
-            new = robust_sigma_px(r, MIN_SIGMA_PX)
+            new = robust_sigma_px(r, MIN_SIGMA_PX, redundancy[cid])
             old = p.noise.sigma_px
             changed |= abs(new - old) > 0.05 * old
             p.noise = NoiseOptions(new, Loss.HUBER, loss_threshold)
@@ -421,7 +459,8 @@ def adjust_rig_jointly(
         for cid, p in problems.items()
         if not (fixed_intrinsics and cid in fixed_intrinsics)
     )
-    n_unknowns = 6 * (len(frames) + len(own_poses) + len(ids) - 1) + 3 * len(free) + n_theta
+    n_ext = 0 if fixed_extrinsics else len(ids) - 1
+    n_unknowns = 6 * (len(frames) + len(own_poses) + n_ext) + 3 * len(free) + n_theta
     redundancy = (
         2 * len(obs_target) + 3 * n_priors + datum_problem.n_datum_constraints() - n_unknowns
     )
@@ -435,7 +474,7 @@ def adjust_rig_jointly(
             names = problems[cid].intrinsics_names()
             cov = inflate * marginals.marginalCovariance(intrinsics_key(c))
             int_sigma[cid] = dict(zip(names, map(float, np.sqrt(np.diag(cov)))))
-            if c > 0:
+            if c > 0 and not fixed_extrinsics:
                 cov = inflate * np.asarray(marginals.marginalCovariance(extrinsics_key(c)))
                 cov_ext[cid] = cam_from_rig_covariance(final.atPose3(extrinsics_key(c)), cov)
     except RuntimeError as exc:  # indeterminate system
