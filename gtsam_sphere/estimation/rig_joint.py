@@ -19,8 +19,10 @@ its measurement is corrected by the camera's kNN field from the per-camera stage
 fixed here. The observations of each camera form one vectorised set of blocks.
 
 Robust weighting as in the single-camera stages: Huber per observation, the scale
-``sigma_px`` of each camera re-estimated from its residuals (``median / sqrt(2 ln 2)``)
-until it changes by less than 5%. The precision of ``cam_from_rig`` is its marginal
+``sigma_px`` of each camera re-estimated from its residuals (``median / sqrt(2 ln 2)``
+of the residuals standardised by their redundancy numbers, a target's information
+summed over every camera that sees it: :func:`rig_redundancy`) until it changes by less
+than 5%. The precision of ``cam_from_rig`` is its marginal
 covariance (``gtsam.Marginals``) in the final, robustly weighted graph, times the
 a-posteriori variance factor when that exceeds 1 (the robust scale, from the median,
 underestimates the spread of heavy-tailed residuals). On an in-model simulated rig
