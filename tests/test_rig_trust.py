@@ -174,3 +174,31 @@ def test_cli_no_joint_stops_at_the_averaged_extrinsics(tmp_path):
     assert main(["calibrate", str(paths["dataset"]), "-o", str(out), "--no-joint", "--quiet"]) == 0
     calib = load_calibration(out)
     assert calib.statistics["rig_adjustment"] == RIG_ADJUSTMENT_AVERAGED
+
+
+@pytest.mark.slow
+def test_knn_relearned_in_the_joint_graph():
+    """``knn_rounds``: each camera's kNN correction is trained again on its residuals
+    in the joint graph (the per-camera one replaced), and the rig stays as accurate."""
+    from gtsam_sphere.estimation.rig import assemble_rig
+
+    sim = simulate_rig(RigOptions(rig="mixed", n_frames=6, seed=1))
+    rig = parse_rig_dataset(sim.dataset)
+    parts = split_rig(rig)
+    opts = {c: CalibrationOptions() for c in rig.camera_ids}
+    calibs = {c: calibrate(parts[c], opts[c]) for c in rig.camera_ids}
+    learners = [c for c in rig.camera_ids if calibs[c].camera.correction is not None]
+    assert learners
+    held = assemble_rig(rig, calibs, opts, lambda _line: None)
+    lines: list[str] = []
+    relearned = assemble_rig(rig, calibs, opts, lines.append, knn_rounds=3)
+    assert any("kNN round 1 in the joint graph" in line for line in lines)
+    assert relearned.statistics["trusted"], relearned.statistics["distrust"]
+    for c in learners:
+        assert relearned.cameras[c].correction is not calibs[c].camera.correction
+        assert held.cameras[c].correction is calibs[c].camera.correction
+    for cam in sim.cameras[1:]:
+        for calib in (held, relearned):
+            R, t = calib.cam_from_rig[cam.id]
+            assert _rotation_deg(R @ cam.cam_from_rig[0].T) < 0.2
+            assert np.linalg.norm(t - cam.cam_from_rig[1]) < 0.01

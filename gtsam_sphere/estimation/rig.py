@@ -22,7 +22,8 @@ A rig (``dataset@2``) is several cameras fixed to one body; images that share a
    which the frames' ``rig_from_world``, the cameras' ``cam_from_rig`` and intrinsics,
    the unframed images' poses and the targets are variables, every observation
    predicted through ``cam_from_rig * rig_from_world`` (each camera's kNN correction
-   from step 1 held fixed), robustly weighted (Huber) as the single-camera stages.
+   from step 1 held fixed, or re-learned there with ``knn_rounds``), robustly weighted
+   (Huber) as the single-camera stages.
 
 The precision of each camera's extrinsics is their marginal covariance in the joint
 graph (``gtsam.Marginals``); the spread of the relative poses of step 2 over the
@@ -453,6 +454,7 @@ def calibrate_rig(
     options: CalibrationOptions | dict[str, CalibrationOptions] | None = None,
     progress: Callable[[str], None] | None = None,
     joint: bool = True,
+    knn_rounds: int = 0,
 ) -> RigCalibration:
     """Calibrate a rig: each camera alone, averaged extrinsics, then the joint adjustment.
 
@@ -470,6 +472,9 @@ def calibrate_rig(
     joint : bool
         Run the joint rig adjustment (default); False stops at the averaged
         extrinsics (the first version).
+    knn_rounds : int
+        Rounds of re-learning each camera's kNN correction in the joint graph
+        (:func:`.rig_joint.adjust_rig_jointly`); 0 holds the per-camera ones.
 
     Returns
     -------
@@ -533,7 +538,7 @@ def calibrate_rig(
             f"cannot be: {lines}"
         ) from failures[0][1]
 
-    return assemble_rig(rig, calibs, per_camera, say, joint)
+    return assemble_rig(rig, calibs, per_camera, say, joint, knn_rounds=knn_rounds)
 
 
 def assemble_rig(
@@ -543,6 +548,7 @@ def assemble_rig(
     say: Callable[[str], None],
     joint: bool = True,
     fixed_extrinsics: dict[str, Pose] | None = None,
+    knn_rounds: int = 0,
 ) -> RigCalibration:
     """Steps 2-4 of the rig calibration from the cameras' own calibrations.
 
@@ -561,6 +567,8 @@ def assemble_rig(
         Known ``cam_from_rig`` of every camera (the first the identity): used instead
         of the averaged ones and held in the joint adjustment (the oracle of a
         simulated rig); their sigma is then not reported.
+    knn_rounds : int
+        Rounds of re-learning each camera's kNN correction in the joint graph.
 
     Returns
     -------
@@ -621,6 +629,8 @@ def assemble_rig(
             points_per_factor=first.points_per_factor,
             fixed_intrinsics=fixed,
             fixed_extrinsics=fixed_extrinsics is not None,
+            knn_rounds=knn_rounds,
+            seed=first.seed,
         )
         adjustment = RIG_ADJUSTMENT
         for cid in ids[1:]:
