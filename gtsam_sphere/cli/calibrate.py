@@ -27,6 +27,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         metavar="CAMERA=MODEL",
         help="rigs: the model of one camera (repeat per camera; --model for the others)",
     )
+    p.add_argument(
+        "--no-joint",
+        action="store_true",
+        help="rigs: stop at the averaged extrinsics (each camera alone, cam_from_rig "
+        "averaged over the shared frames), without the joint rig adjustment",
+    )
 
 
 def run(args) -> int:
@@ -39,6 +45,8 @@ def run(args) -> int:
         return rig.run_cli(args, options_from_args(args), None if args.quiet else stderr_progress)
     if args.camera_model:
         raise OptionsError("--camera-model applies to a rig (dataset@2); use --model")
+    if getattr(args, "no_joint", False):
+        raise OptionsError("--no-joint applies to a rig (dataset@2)")
     dataset = load_dataset(args.dataset)
     for iid, why in dataset.skipped_images:
         logger.warning("image %r skipped: %s", iid, why)

@@ -21,6 +21,7 @@ __all__ = [
     "MEDIAN_NORM_2D",
     "MEDIAN_NORM_3D",
     "MAD_TO_SIGMA",
+    "MIN_REDUNDANCY",
     "Loss",
     "mad_sigma",
     "robust_sigma_px",
@@ -73,14 +74,39 @@ def robust_weight(r: np.ndarray, loss: Loss | str, k: float) -> tuple[np.ndarray
     raise ValueError(f"unknown loss {loss!r}")
 
 
-def robust_sigma_px(residual_norms_px: np.ndarray, floor_px: float = 0.0) -> float:
+#: observations whose local redundancy (of 2) is below this carry too little of the
+#: noise to scale it (:func:`robust_sigma_px`): e.g. a target seen in one image only
+MIN_REDUNDANCY = 0.5
+
+
+def robust_sigma_px(
+    residual_norms_px: np.ndarray,
+    floor_px: float = 0.0,
+    redundancy: np.ndarray | None = None,
+) -> float:
     """Robust image-noise sigma (px) from 2-D residual norms (N,): ``median / sqrt(2 ln 2)``.
 
     The median of the norm of a 2-D isotropic normal with per-axis sigma ``s`` is
     ``s sqrt(2 ln 2)``; non-finite norms are ignored. Never below ``floor_px``.
+
+    An adjusted residual is smaller than the noise by the share of it the unknowns
+    absorbed: with ``redundancy`` (N,) (each observation's redundancy number, 0 to 2,
+    the trace of its block of ``I - H``; :func:`gtsam_sphere.estimation.graph.
+    observation_redundancy`) the norms are standardised by ``sqrt(2 / redundancy)``
+    and the observations below :data:`MIN_REDUNDANCY` are left out. Without it, a
+    network whose targets are mostly seen once (each absorbing its own residual)
+    gives a median near zero, and an iterated scale estimate collapses to the floor.
+    When fewer than 10 observations are left, the plain estimate is returned.
     """
     r = np.asarray(residual_norms_px, dtype=float).ravel()
-    r = r[np.isfinite(r)]
+    ok = np.isfinite(r)
+    if redundancy is not None:
+        red = np.asarray(redundancy, float).ravel()
+        use = ok & np.isfinite(red) & (red >= MIN_REDUNDANCY)
+        if use.sum() >= 10:
+            r = r[use] * np.sqrt(2.0 / red[use])
+            return max(float(np.median(r)) / MEDIAN_NORM_2D, float(floor_px))
+    r = r[ok]
     if len(r) == 0:
         return float(floor_px)
     return max(float(np.median(r)) / MEDIAN_NORM_2D, float(floor_px))

@@ -198,9 +198,13 @@ def adjust(
     """Robust adjustment, optionally estimating ``sigma_px`` from the residuals.
 
     With ``estimate_sigma`` the scale starts at the robust scale of the
-    initial residuals and is re-estimated (``median(|e|) / sqrt(2 ln 2)``)
-    after each adjustment until it changes by less than 5% (graduated
-    robustness), at most ``max_stages`` adjustments. The first stage is plain
+    initial residuals and is re-estimated (``median(|e|) / sqrt(2 ln 2)`` of the
+    residuals standardised by their redundancy numbers,
+    :meth:`BundleProblem.observation_redundancy`: a target seen in one image absorbs
+    its own residual, and a camera whose targets were mostly seen once, the narrow
+    camera of a rig, saw its scale collapse to the floor) after each adjustment until
+    it changes by less than 5% (graduated robustness), at most ``max_stages``
+    adjustments. The first stage is plain
     least squares; ``first_stage_mask`` (N,) bool restricts it to the
     observations the initialisation's RANSAC found consistent, so blunders
     cannot pull it (the robust stages then see every observation).
@@ -265,8 +269,11 @@ def adjust(
         if not estimate_sigma:
             break
         r = np.linalg.norm(problem.residuals_px(result.values), axis=1)
-        sigma = robust_sigma_px(r, MIN_SIGMA_PX)
         old = problem.noise.sigma_px
+        # standardised by each observation's redundancy: the residuals of targets seen
+        # in one image (absorbed by the target) would otherwise pull the scale to zero
+        redundancy = problem.observation_redundancy(result.values, old)
+        sigma = robust_sigma_px(r, MIN_SIGMA_PX, redundancy)
         if progress:
             progress(f"{label}robust scale estimate sigma = {sigma:.4f} px (was {old:.4f})")
         problem.noise = NoiseOptions(sigma, loss, problem.noise.loss_threshold)

@@ -83,6 +83,40 @@ def consistent_with_neighbours(
     return good
 
 
+def train_correction(
+    uv_px: np.ndarray, target_px: np.ndarray, seed: int, degree: int | None, train=None
+) -> tuple[KNNCorrection, np.ndarray, np.ndarray]:
+    """One training step of the grey-box loop: fit the kNN field, predict every
+    observation's correction (the training observations without themselves).
+
+    Parameters
+    ----------
+    uv_px : ndarray, shape (N, 2)
+        Raw pixels.
+    target_px : ndarray, shape (N, 2)
+        The correction each observation needs (current correction + residual), px.
+    seed : int
+    degree : int or None
+        :class:`KNNCorrection`'s local fit degree (None: chosen by cross-validation).
+    train : ndarray of bool, shape (N,), optional
+        The training set; default the observations consistent with their neighbours
+        (:func:`consistent_with_neighbours`).
+
+    Returns
+    -------
+    model : KNNCorrection
+    corrections : ndarray, shape (N, 2)
+    train : ndarray of bool, shape (N,)
+    """
+    if train is None:
+        train = consistent_with_neighbours(uv_px, target_px)
+    model = KNNCorrection(random_state=seed, degree=degree)
+    model.fit(uv_px[train], target_px[train])
+    corrections = model.predict(uv_px)
+    corrections[train] = model.predict_without_self()  # no observation corrects itself
+    return model, corrections, train
+
+
 def grey_box_loop(problem, adj, optimizer, options, say: Callable[[str], None], adjust):
     """Alternate kNN training and adjustment until both are stable.
 
@@ -136,15 +170,11 @@ def grey_box_loop(problem, adj, optimizer, options, say: Callable[[str], None], 
     say(f"kNN round 0: RMS {rms:.4f} px within 5 sigma (no correction)")
     for rnd in range(1, int(cfg["max_rounds"]) + 1):
         target = problem.corrections_px + adj.residuals_px
-        if cfg["train"] == "weights":
-            train = adj.weights >= 0.5
-        else:
-            train = consistent_with_neighbours(problem.uv_px, target)
+        train = adj.weights >= 0.5 if cfg["train"] == "weights" else None
+        model, corrections, train = train_correction(
+            problem.uv_px, target, options.seed, cfg["degree"], train
+        )
         prev_rms = _rms(adj.residuals_px, train)
-        model = KNNCorrection(random_state=options.seed, degree=cfg["degree"])
-        model.fit(problem.uv_px[train], target[train])
-        corrections = model.predict(problem.uv_px)
-        corrections[train] = model.predict_without_self()  # no observation corrects itself
         problem.corrections_px = corrections
         # the first (least-squares) stage leaves out the previous round's outliers
         consistent = np.linalg.norm(adj.residuals_px, axis=1) < 5.0 * adj.sigma_px

@@ -289,6 +289,56 @@ class Datum(StrEnum):
     FREE = "free"  # approximate coordinates only: minimal constraints + S-transform
 
 
+def observation_redundancy(
+    J: np.ndarray, obs_target: np.ndarray, sigma_px: np.ndarray, target_sigma: np.ndarray
+) -> np.ndarray:
+    """Local redundancy numbers of the observations from the targets they share.
+
+    The redundancy number of a 2-D observation is the trace of its 2 x 2 block of
+    ``I - H`` (``H`` the hat matrix of the weighted adjustment): the expected squared
+    residual norm over ``sigma^2``, 2 for an observation of a known point, 0 for one
+    that alone determines what it observes. Here ``H`` is taken block by block over
+    the targets (the poses and intrinsics, each determined by many observations,
+    absorb little of any one): for target ``j`` with information
+    ``N_j = sum_k J_k^T J_k / s_k^2 + I / sigma_j^2`` (its prior, when it has one),
+    observation ``k`` has ``h_k = tr(J_k N_j^+ J_k^T) / s_k^2``. A target seen in one
+    image with a loose prior gives ``h ~ 2`` (its residual tells nothing of the noise);
+    a target seen in ``m`` images with no prior ``h ~ 3 / m``.
+
+    Parameters
+    ----------
+    J : ndarray, shape (N, 2, 3)
+        Derivative of each predicted pixel by its target (px per dataset unit;
+        zero for exact targets): :meth:`BundleProblem.target_jacobians`.
+    obs_target : ndarray of int, shape (N,)
+    sigma_px : ndarray, shape (N,)
+        Image noise of each observation, px.
+    target_sigma : ndarray, shape (T,)
+        Prior sigma of the targets (dataset units; 0 exact, NaN none).
+
+    Returns
+    -------
+    ndarray, shape (N,)
+        ``2 - h_k``, clipped to [0, 2].
+    """
+    J = np.asarray(J, float)
+    obs_target = np.asarray(obs_target, np.intp)
+    w = 1.0 / np.square(np.asarray(sigma_px, float))
+    n_t = len(target_sigma)
+    info = np.zeros((n_t, 3, 3))
+    np.add.at(info, obs_target, w[:, None, None] * np.einsum("nki,nkj->nij", J, J))
+    sig = np.asarray(target_sigma, float)
+    has_prior = np.isfinite(sig) & (sig > 0)
+    prior = np.zeros(len(sig))
+    prior[has_prior] = 1.0 / np.square(sig[has_prior])
+    info += prior[:, None, None] * np.eye(3)
+    used = np.unique(obs_target)
+    cov = np.zeros_like(info)
+    cov[used] = np.linalg.pinv(info[used], hermitian=True)
+    h = w * np.einsum("nki,nij,nkj->n", J, cov[obs_target], J)
+    return np.clip(2.0 - h, 0.0, 2.0)
+
+
 def choose_minimal_constraint_points(xyz: np.ndarray) -> tuple[int, int, int]:
     """Three well-spread points (indices into ``xyz`` (T,3)) for a minimal datum."""
     centroid = xyz.mean(0)
@@ -633,6 +683,44 @@ class BundleProblem:
         for block, idx in zip(self.blocks, self.block_obs):
             out[idx] = block.residuals_px(values)
         return out
+
+    def target_jacobians(self, values: gtsam.Values) -> np.ndarray:
+        """Derivative of each observation's predicted pixel by its target, (N, 2, 3).
+
+        Central differences (step ``1e-6`` of the free targets' extent, every free
+        target moved at once: an observation sees one target) in px per dataset unit;
+        zero for exact targets (not variables). The blocks must be built.
+        """
+        J = np.zeros((len(self.uv_px), 2, 3))
+        free = self.free_targets
+        if len(free) == 0:
+            return J
+        xyz = np.array([values.atPoint3(point_key(int(t))) for t in free])
+        extent = float(np.linalg.norm(xyz.max(0) - xyz.min(0))) or 1.0
+        step = 1e-6 * extent
+        moved = gtsam.Values(values)
+        for a in range(3):
+            res = []
+            for sign in (1.0, -1.0):
+                for t, p in zip(free, xyz):
+                    q = p.copy()
+                    q[a] += sign * step
+                    moved.update(point_key(int(t)), q)
+                res.append(self.residuals_px(moved))
+            # residuals are measured - predicted
+            J[:, :, a] = -(res[0] - res[1]) / (2.0 * step)
+        J[self.fixed[self.obs_target]] = 0.0
+        return np.nan_to_num(J)
+
+    def observation_redundancy(self, values: gtsam.Values, sigma_px: float) -> np.ndarray:
+        """Local redundancy number (0 to 2) of each observation, (N,) (see
+        :func:`observation_redundancy`), at ``values`` with the image noise ``sigma_px``."""
+        return observation_redundancy(
+            self.target_jacobians(values),
+            self.obs_target,
+            np.full(len(self.uv_px), float(sigma_px)),
+            self.target_sigma,
+        )
 
     def n_unknowns(self) -> int:
         """Number of estimated parameters (6 per pose, 3 per free target, intrinsics)."""

@@ -22,7 +22,8 @@ A rig (``dataset@2``) is several cameras fixed to one body; images that share a
    which the frames' ``rig_from_world``, the cameras' ``cam_from_rig`` and intrinsics,
    the unframed images' poses and the targets are variables, every observation
    predicted through ``cam_from_rig * rig_from_world`` (each camera's kNN correction
-   from step 1 held fixed), robustly weighted (Huber) as the single-camera stages.
+   from step 1 held fixed, or re-learned there with ``knn_rounds``), robustly weighted
+   (Huber) as the single-camera stages.
 
 The precision of each camera's extrinsics is their marginal covariance in the joint
 graph (``gtsam.Marginals``); the spread of the relative poses of step 2 over the
@@ -453,6 +454,7 @@ def calibrate_rig(
     options: CalibrationOptions | dict[str, CalibrationOptions] | None = None,
     progress: Callable[[str], None] | None = None,
     joint: bool = True,
+    knn_rounds: int = 0,
 ) -> RigCalibration:
     """Calibrate a rig: each camera alone, averaged extrinsics, then the joint adjustment.
 
@@ -470,6 +472,9 @@ def calibrate_rig(
     joint : bool
         Run the joint rig adjustment (default); False stops at the averaged
         extrinsics (the first version).
+    knn_rounds : int
+        Rounds of re-learning each camera's kNN correction in the joint graph
+        (:func:`.rig_joint.adjust_rig_jointly`); 0 holds the per-camera ones.
 
     Returns
     -------
@@ -533,7 +538,7 @@ def calibrate_rig(
             f"cannot be: {lines}"
         ) from failures[0][1]
 
-    return assemble_rig(rig, calibs, per_camera, say, joint)
+    return assemble_rig(rig, calibs, per_camera, say, joint, knn_rounds=knn_rounds)
 
 
 def assemble_rig(
@@ -542,6 +547,8 @@ def assemble_rig(
     options: dict[str, CalibrationOptions],
     say: Callable[[str], None],
     joint: bool = True,
+    fixed_extrinsics: dict[str, Pose] | None = None,
+    knn_rounds: int = 0,
 ) -> RigCalibration:
     """Steps 2-4 of the rig calibration from the cameras' own calibrations.
 
@@ -556,6 +563,12 @@ def assemble_rig(
     say : callable(str)
     joint : bool
         Run the joint adjustment (step 4); False stops at the averaged extrinsics.
+    fixed_extrinsics : dict of str -> (R (3, 3), t (3,)), optional
+        Known ``cam_from_rig`` of every camera (the first the identity): used instead
+        of the averaged ones and held in the joint adjustment (the oracle of a
+        simulated rig); their sigma is then not reported.
+    knn_rounds : int
+        Rounds of re-learning each camera's kNN correction in the joint graph.
 
     Returns
     -------
@@ -566,6 +579,8 @@ def assemble_rig(
     frame_of = dict(zip(rig.image_ids, rig.image_frame))
     poses = {cid: _framed_poses(calibs[cid], frame_of) for cid in ids}
     cam_from_rig, precision = place_cameras(ids, poses, say)
+    if fixed_extrinsics is not None:
+        cam_from_rig = {c: fixed_extrinsics[c] for c in ids}
 
     # rig_from_world per frame: robust mean over the frame's cameras
     frame_ids = [f for f in rig.frame_ids if any(f in poses[c] for c in ids)]
@@ -613,6 +628,9 @@ def assemble_rig(
             loss_threshold=first.loss_threshold,
             points_per_factor=first.points_per_factor,
             fixed_intrinsics=fixed,
+            fixed_extrinsics=fixed_extrinsics is not None,
+            knn_rounds=knn_rounds,
+            seed=first.seed,
         )
         adjustment = RIG_ADJUSTMENT
         for cid in ids[1:]:
@@ -695,7 +713,11 @@ def assemble_rig(
     ]
     if jr is not None and not jr.result.converged:
         distrust.append(f"the joint rig adjustment did not converge ({jr.result.status})")
-    if jr is not None and any(jr.cam_from_rig_covariance[c] is None for c in ids[1:]):
+    if (
+        jr is not None
+        and fixed_extrinsics is None
+        and any(jr.cam_from_rig_covariance[c] is None for c in ids[1:])
+    ):
         distrust.append(
             "the joint rig adjustment's normal equations are singular: the precision of "
             "cam_from_rig is unknown"
@@ -785,7 +807,8 @@ def run_cli(args, base: CalibrationOptions, progress: Callable[[str], None] | No
     ----------
     args : argparse.Namespace
         ``dataset``, ``output``, ``camera_model`` (list of ``ID=MODEL`` or None),
-        ``ap`` (``--ap``, None when not given).
+        ``ap`` (``--ap``, None when not given), ``no_joint`` (``--no-joint``: stop at
+        the averaged extrinsics).
     base : CalibrationOptions
         The options of every camera (``--model`` and the rest).
     progress : callable(str) or None
@@ -810,7 +833,7 @@ def run_cli(args, base: CalibrationOptions, progress: Callable[[str], None] | No
         )
     models = parse_camera_models(getattr(args, "camera_model", None), rig.camera_ids)
     options = camera_options(base, rig.camera_ids, models, getattr(args, "ap", None) is not None)
-    calib = calibrate_rig(rig, options, progress)
+    calib = calibrate_rig(rig, options, progress, joint=not getattr(args, "no_joint", False))
     calib.save(args.output)
     st = calib.statistics
     print(
