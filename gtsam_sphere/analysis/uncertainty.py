@@ -1042,7 +1042,12 @@ def valid_region(
     plus the kNN term) stays below ``max_sigma_px``, within the camera's
     ``valid_alpha_rad()`` (the observed field plus its margin, and the lens's
     one-to-one field). A region that is not star-shaped (a hole of large
-    uncertainty inside the field) is cut at its first crossing.
+    uncertainty inside the field) is cut at its first crossing. A ray whose
+    sigma is NaN counts as outside: a model moved by one sigma of an
+    intrinsic has no pixel for it, e.g. the radial polynomial with one
+    sigma more of a weakly determined high-order term folds there (on the
+    real ``opencv_fisheye_left`` calibration, past 61 deg on every azimuth,
+    just inside its 63 deg field).
 
     Parameters
     ----------
