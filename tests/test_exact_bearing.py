@@ -424,3 +424,166 @@ def test_rig_graph_recovers_body_poses(tmp_path):
         for f, b in enumerate(bodies)
     )
     assert worst < 2e-3 and worst < 0.05 * start, (worst, start)
+
+
+# -- exact bearings mixed with IMU factors ------------------------------------------------------
+
+IMU_DT = 0.005  # s, IMU sample period
+KEY_DT = 0.5  # s between keyframes
+N_KEYS = 8
+RADIUS, OMEGA = 2.0, 0.4  # m, rad/s: the body circles the origin, looking outward
+GRAVITY = 9.81  # m/s^2 along -z of the world (gtsam.PreintegrationParams.MakeSharedU)
+ACC_BIAS = np.array([0.06, -0.04, 0.05])  # m/s^2, true accelerometer bias
+GYRO_BIAS = np.array([0.004, -0.003, 0.005])  # rad/s, true gyroscope bias
+# world <- body at t = 0: the body (camera) frame x right, y down, z forward looks along +x
+_R0 = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+
+
+def _imu_truth(t: float):
+    """World <- body rotation (3, 3), position (m) and velocity (m/s) at time ``t`` (s)."""
+    a = OMEGA * t
+    Rz = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
+    p = np.array([RADIUS * np.cos(a), RADIUS * np.sin(a), 1.5 + 0.2 * np.sin(2 * a)])
+    v = np.array(
+        [-RADIUS * OMEGA * np.sin(a), RADIUS * OMEGA * np.cos(a), 0.4 * OMEGA * np.cos(2 * a)]
+    )
+    return Rz @ _R0, p, v
+
+
+def _imu_reading(t: float):
+    """Ideal accelerometer (specific force, m/s^2) and gyroscope (rad/s) readings, body frame."""
+    a = OMEGA * t
+    R, _, _ = _imu_truth(t)
+    acc_world = np.array(
+        [
+            -RADIUS * OMEGA**2 * np.cos(a),
+            -RADIUS * OMEGA**2 * np.sin(a),
+            -0.8 * OMEGA**2 * np.sin(2 * a),
+        ]
+    )
+    specific_force = R.T @ (acc_world + np.array([0.0, 0.0, GRAVITY]))
+    omega_body = _R0.T @ np.array([0.0, 0.0, OMEGA])  # R = Rz(OMEGA t) R0
+    return specific_force, omega_body
+
+
+@pytest.fixture(scope="module")
+def imu_scene():
+    """Keyframes of a circular flight, their preintegrated IMU (biased, noisy) and the
+    pixels (0.3 px noise) of landmarks on a cylinder wall seen by a 200 deg fisheye."""
+    rng = np.random.default_rng(5)
+    camera = fisheye_camera(200.0, size_px=800)
+    params = gtsam.PreintegrationParams.MakeSharedU(GRAVITY)
+    acc_sigma, gyro_sigma = 0.02, 0.002  # per sample (m/s^2, rad/s)
+    params.setAccelerometerCovariance(np.eye(3) * acc_sigma**2 * IMU_DT)
+    params.setGyroscopeCovariance(np.eye(3) * gyro_sigma**2 * IMU_DT)
+    params.setIntegrationCovariance(np.eye(3) * 1e-8)
+    steps = int(round(KEY_DT / IMU_DT))
+    pims = []
+    for i in range(N_KEYS - 1):
+        pim = gtsam.PreintegratedImuMeasurements(params, gtsam.imuBias.ConstantBias())
+        for s in range(steps):
+            t = i * KEY_DT + (s + 0.5) * IMU_DT  # mid-interval reading: no first-order lag
+            acc, gyro = _imu_reading(t)
+            acc = acc + ACC_BIAS + rng.normal(scale=acc_sigma, size=3)
+            gyro = gyro + GYRO_BIAS + rng.normal(scale=gyro_sigma, size=3)
+            pim.integrateMeasurement(acc, gyro, IMU_DT)
+        pims.append(pim)
+    poses = [
+        gtsam.Pose3(gtsam.Rot3(R), p) for R, p, _ in map(_imu_truth, np.arange(N_KEYS) * KEY_DT)
+    ]
+    vels = [_imu_truth(i * KEY_DT)[2] for i in range(N_KEYS)]
+    az = rng.uniform(-0.6, 2.6, 80)  # rad, around the part of the wall the flight faces
+    points = np.column_stack([5.0 * np.cos(az), 5.0 * np.sin(az), rng.uniform(0.0, 3.0, len(az))])
+    uv, obs_key, obs_point = [], [], []
+    for i, pose in enumerate(poses):
+        p_cam = np.array([pose.transformTo(P) for P in points])
+        pix = camera.project(p_cam)
+        seen = np.flatnonzero(
+            np.isfinite(pix).all(1)
+            & (pix >= 0).all(1)
+            & (pix[:, 0] < camera.width - 1)
+            & (pix[:, 1] < camera.height - 1)
+        )
+        uv.append(pix[seen] + rng.normal(scale=0.3, size=(len(seen), 2)))
+        obs_key += [i] * len(seen)
+        obs_point += seen.tolist()
+    return dict(
+        camera=camera,
+        pims=pims,
+        poses=poses,
+        vels=vels,
+        points=points,
+        uv=np.concatenate(uv),
+        obs_key=np.array(obs_key),
+        obs_point=np.array(obs_point),
+    )
+
+
+def _imu_graph(scene, with_camera: bool):
+    X = lambda i: gtsam.symbol("x", i)  # noqa: E731
+    V = lambda i: gtsam.symbol("v", i)  # noqa: E731
+    L = lambda j: gtsam.symbol("l", j)  # noqa: E731
+    B = gtsam.symbol("b", 0)
+    rng = np.random.default_rng(8)
+    graph, initial = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    graph.add(gtsam.PriorFactorPose3(X(0), scene["poses"][0], M.Diagonal.Sigmas(np.full(6, 1e-3))))
+    graph.add(gtsam.PriorFactorVector(V(0), scene["vels"][0], M.Isotropic.Sigma(3, 0.01)))
+    graph.add(
+        gtsam.PriorFactorConstantBias(
+            B,
+            gtsam.imuBias.ConstantBias(),
+            M.Diagonal.Sigmas(np.r_[np.full(3, 0.1), np.full(3, 0.01)]),
+        )
+    )
+    for i, pim in enumerate(scene["pims"]):
+        graph.add(gtsam.ImuFactor(X(i), V(i), X(i + 1), V(i + 1), B, pim))
+    for i, (pose, vel) in enumerate(zip(scene["poses"], scene["vels"])):
+        noise = np.r_[rng.normal(scale=0.03, size=3), rng.normal(scale=0.15, size=3)]
+        initial.insert(X(i), pose.retract(noise if i else np.zeros(6)))
+        initial.insert(V(i), vel + rng.normal(scale=0.1, size=3) * (i > 0))
+    initial.insert(B, gtsam.imuBias.ConstantBias())
+    if with_camera:
+        cam = scene["camera"]
+        factors = exact_bearing_factors(
+            cam,
+            scene["uv"],
+            [X(int(i)) for i in scene["obs_key"]],
+            [L(int(j)) for j in scene["obs_point"]],
+            pixel_noise=M.Robust.Create(HUBER, M.Isotropic.Sigma(2, 0.3)),
+        )
+        for f in factors:
+            graph.add(f)
+        for j in np.unique(scene["obs_point"]):
+            initial.insert(L(int(j)), scene["points"][j] + rng.normal(scale=0.2, size=3))
+    result = gtsam.LevenbergMarquardtOptimizer(graph, initial, _tight()).optimize()
+    errors = np.array(
+        [
+            [
+                np.linalg.norm(result.atPose3(X(i)).translation() - pose.translation()),
+                np.linalg.norm(pose.rotation().logmap(result.atPose3(X(i)).rotation())),
+            ]
+            for i, pose in enumerate(scene["poses"])
+        ]
+    )
+    return errors, result.atConstantBias(B)
+
+
+def test_exact_bearings_mix_with_imu_factors(imu_scene):
+    """Pose3 + velocity + bias variables, ImuFactors of a biased, noisy IMU on a circular
+    flight and the exact-bearing factors of 0.3 px fisheye pixels: from perturbed
+    initial values the optimum recovers every keyframe; the IMU alone (its bias
+    unobservable) drifts far more. Measured (8 keyframes over 3.5 s, 0.3 px pixels,
+    IMU biased by 0.06 m/s^2 and 0.005 rad/s): camera + IMU max 16 mm / 1.7 mrad
+    (the scale comes from the IMU's small accelerations), IMU only 690 mm / 23 mrad."""
+    assert len(imu_scene["uv"]) > 200
+    both, bias = _imu_graph(imu_scene, with_camera=True)
+    imu_only, _ = _imu_graph(imu_scene, with_camera=False)
+    print("max position (m) / rotation (rad) error, camera+IMU:", both.max(0))
+    print("max position (m) / rotation (rad) error, IMU only:", imu_only.max(0))
+    print("bias estimate:", bias.accelerometer(), bias.gyroscope())
+    assert both[:, 0].max() < 0.03 and both[:, 1].max() < 3e-3, both
+    assert imu_only[:, 0].max() > 10 * both[:, 0].max(), (imu_only, both)
+    assert imu_only[:, 1].max() > 5 * both[:, 1].max(), (imu_only, both)
+    # the camera makes the bias observable: the estimate is near the truth
+    assert np.abs(bias.accelerometer() - ACC_BIAS).max() < 0.03
+    assert np.abs(bias.gyroscope() - GYRO_BIAS).max() < 1e-3

@@ -98,6 +98,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..core.camera import BROWN_TERMS
+from ..core.errors import OptionsError
 from ..core.lie import skew
 from ..core.rays import pixel_rays, project_rays
 from ..io.dataset import DatasetError
@@ -573,6 +574,11 @@ class UncertaintyMap:
     fit_ranges_m : tuple of float
         Ranges of the points the translation was fitted at (calibration
         units); empty for a rotation only.
+    motion_per_intrinsic : ndarray, shape (m, K), optional
+        The fitted motion per unit of each intrinsic (``X`` of
+        :func:`compensate_jacobian`: rad, calibration units): the
+        compensation, reusable at other rays (:func:`ray_sigma_px`);
+        ``None`` without compensation.
     """
 
     u_px: np.ndarray
@@ -590,6 +596,7 @@ class UncertaintyMap:
     range_m: float | None = None
     fit_note: str = ""
     fit_ranges_m: tuple[float, ...] = ()
+    motion_per_intrinsic: np.ndarray | None = None
 
     def summary(self, mask: np.ndarray | None = None) -> dict:
         """Median and max of ``sigma_px`` (px) over the finite cells (and ``mask`` (R, C))."""
@@ -722,7 +729,7 @@ def uncertainty_map(
     s_fixed = np.sqrt(np.clip(C_fixed[:, 0, 0] + C_fixed[:, 1, 1], 0.0, None))
     s_fixed[~ok] = np.nan
     C, s_intr = C_fixed, s_fixed
-    compensation, weights, motion_sigma, fit_note = "none", None, None, ""
+    compensation, weights, motion_sigma, fit_note, X = "none", None, None, "", None
     if compensate_rotation:
         A = np.full((len(uv), 2, 3), np.nan)
         if ok.any():
@@ -796,6 +803,7 @@ def uncertainty_map(
         range_m=range_m,
         fit_note=fit_note,
         fit_ranges_m=tuple(fit_ranges),
+        motion_per_intrinsic=X,
     )
     return result
 
@@ -887,3 +895,258 @@ def uncertainty_map_of(
         return umap
     except ValueError as exc:
         raise DatasetError(f"{where}: {exc}") from None
+
+
+# -- the valid region: where the projection uncertainty is small ---------------------------------
+
+
+def ray_sigma_px(
+    camera,
+    rays: np.ndarray,
+    covariance: np.ndarray,
+    names: list[str],
+    motion_per_intrinsic: np.ndarray | None = None,
+    range_m: float | None = None,
+    include_knn: bool = True,
+) -> np.ndarray:
+    """Projection uncertainty (px) of camera-frame rays, the quantity of :class:`UncertaintyMap`.
+
+    ``sqrt(trace(Jc Sigma Jc^T) + sigma_knn^2)`` at each ray's pixel, with
+    ``Jc = J - G X`` the Jacobian wrt the intrinsics after the compensating
+    camera motion ``X`` fitted by :func:`uncertainty_map` (its
+    :attr:`UncertaintyMap.motion_per_intrinsic`; ``None``: a fixed
+    camera-frame ray, ``Jc = J``).
+
+    Parameters
+    ----------
+    camera : SphereCamera
+    rays : ndarray, shape (N, 3)
+        Unit rays, camera frame (x right, y down, z forward).
+    covariance : ndarray, shape (K, K)
+        Covariance of the intrinsics ``names`` (their units squared).
+    names : list of str, length K
+    motion_per_intrinsic : ndarray, shape (3, K) or (6, K), optional
+        Motion per unit of each intrinsic (rotation rad, then translation in
+        calibration units).
+    range_m : float, optional
+        With a 6-row motion: range of the points (calibration units);
+        ``None``: infinity, the translation has no effect.
+    include_knn : bool
+        Add the kNN correction's local standard error (:func:`knn_sigma_px`).
+
+    Returns
+    -------
+    sigma_px : ndarray, shape (N,)
+        NaN where the camera (or a perturbed one) has no pixel for the ray.
+
+    Raises
+    ------
+    ValueError
+        Shapes disagree or a name is not a parameter of the camera.
+    """
+    rays = np.asarray(rays, float).reshape(-1, 3)
+    cov = np.asarray(covariance, float)
+    names = list(names)
+    if cov.shape != (len(names), len(names)):
+        raise ValueError(f"covariance has shape {cov.shape}, expected {len(names)} x {len(names)}")
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        uv = np.asarray(camera.project(rays), float).reshape(-1, 2)
+    ok = np.all(np.isfinite(uv), axis=1)
+    sig = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    J = np.full((len(rays), 2, len(names)), np.nan)
+    if ok.any():
+        J[ok] = projection_jacobian(camera, rays[ok], names, sig, uv[ok])
+    J[:, :, ~(sig > 0)] = 0.0
+    if motion_per_intrinsic is not None:
+        X = np.asarray(motion_per_intrinsic, float)
+        if X.ndim != 2 or X.shape[0] not in (3, 6) or X.shape[1] != len(names):
+            raise ValueError(
+                f"motion_per_intrinsic has shape {X.shape}, expected (3|6, {len(names)})"
+            )
+        A = np.full((len(rays), 2, 3), np.nan)
+        if ok.any():
+            A[ok] = ray_jacobian(camera, rays[ok], uv[ok])
+        G = _rotation_columns(A, np.where(ok[:, None], rays, 0.0))
+        if X.shape[0] == 6:
+            G_t = 0.0 * A if range_m is None else A / _positive_range(range_m, "range_m")
+            G = np.concatenate([G, G_t], axis=2)
+        J = J - np.einsum("nim,mk->nik", G, X)
+    C = np.einsum("nik,kl,njl->nij", J, cov, J)
+    var = C[:, 0, 0] + C[:, 1, 1]
+    corr = getattr(camera, "correction", None)
+    if include_knn and corr is not None and ok.any():
+        knn = knn_sigma_px(corr, np.where(ok[:, None], uv, 0.0))
+        if knn is not None:
+            var = var + np.where(np.isfinite(knn), knn, 0.0) ** 2
+    out = np.sqrt(np.clip(var, 0.0, None))
+    out[~ok | ~np.isfinite(out)] = np.nan
+    return out
+
+
+@dataclass
+class ValidRegion:
+    """Where a calibration's projection uncertainty is small, on a polar grid of rays.
+
+    The rays at azimuth ``phi`` (``atan2(y, x)`` of the camera-frame ray,
+    x right, y down) and incidence ``alpha`` (from the optical axis z) are
+    ``(sin a cos phi, sin a sin phi, cos a)``.
+
+    Attributes
+    ----------
+    azimuth_rad : ndarray, shape (A,)
+        ``2 pi i / A`` (rad).
+    alpha_rad : ndarray, shape (L,)
+        Incidence angles of the grid (rad), up to the camera's
+        ``valid_alpha_rad()`` (observed field plus margin, one-to-one field).
+    sigma_px : ndarray, shape (A, L)
+        Projection uncertainty (px, :func:`ray_sigma_px`) of each grid ray.
+    alpha_max_rad : ndarray, shape (A,)
+        Per azimuth, the incidence up to which every grid ray from the axis
+        outwards has ``sigma_px <= max_sigma_px`` (linear interpolation to the
+        crossing); 0 when the axis already exceeds it. What the camera holds
+        as ``valid_region_alpha_rad``.
+    max_sigma_px : float
+        The threshold (px).
+    note : str
+        The map's description (covariance, compensation, kNN term).
+    """
+
+    azimuth_rad: np.ndarray
+    alpha_rad: np.ndarray
+    sigma_px: np.ndarray
+    alpha_max_rad: np.ndarray
+    max_sigma_px: float
+    note: str = ""
+
+    def solid_angle_sr(self) -> float:
+        """Solid angle of the region (sr): ``sum_i (1 - cos alpha_max_i) 2 pi / A``."""
+        return float(np.sum(1.0 - np.cos(self.alpha_max_rad)) * 2 * math.pi / len(self.azimuth_rad))
+
+
+def valid_region(
+    calib,
+    max_sigma_px: float = 1.0,
+    n_azimuth: int = 72,
+    n_alpha: int = 48,
+    n_cols: int = 40,
+    source: str | None = None,
+) -> ValidRegion:
+    """The valid region of a calibration: rays whose projection uncertainty is small.
+
+    Like mrcal's valid-intrinsics region (the part of the image where the
+    projection uncertainty stays below a threshold, see
+    https://mrcal.secretsauce.net/uncertainty.html), but stored on the ray
+    sphere as a star-shaped region about the optical axis: per azimuth, the
+    largest incidence up to which the uncertainty of :func:`uncertainty_map_of`
+    (camera frame compensated by the rotation fitted over the observations,
+    plus the kNN term) stays below ``max_sigma_px``, within the camera's
+    ``valid_alpha_rad()`` (the observed field plus its margin, and the lens's
+    one-to-one field). A region that is not star-shaped (a hole of large
+    uncertainty inside the field) is cut at its first crossing. A ray whose
+    sigma is NaN counts as outside: a model moved by one sigma of an
+    intrinsic has no pixel for it, e.g. the radial polynomial with one
+    sigma more of a weakly determined high-order term folds there (on the
+    real ``opencv_fisheye_left`` calibration, past 61 deg on every azimuth,
+    just inside its 63 deg field).
+
+    Parameters
+    ----------
+    calib : Calibration
+        With ``statistics["intrinsics_covariance"]`` (or ``intrinsics_sigma``).
+    max_sigma_px : float
+        Threshold on the projection uncertainty (px, RMS length of the 2-D
+        error as ``rms_px``).
+    n_azimuth : int
+        Azimuths of the table (>= 4).
+    n_alpha : int
+        Incidence samples per azimuth (>= 2).
+    n_cols : int
+        Grid columns of the map the compensation is fitted on.
+    source : str, optional
+        Name used in messages.
+
+    Returns
+    -------
+    ValidRegion
+
+    Raises
+    ------
+    DatasetError
+        No usable covariance in ``calib.statistics`` (see
+        :func:`uncertainty_map_of`).
+    OptionsError
+        ``max_sigma_px`` not finite and positive, or a grid size too small.
+    """
+    try:
+        thr = float(max_sigma_px)
+    except (TypeError, ValueError):
+        thr = math.nan
+    if not (math.isfinite(thr) and thr > 0):
+        raise OptionsError(f"max_sigma_px must be finite and > 0, got {max_sigma_px!r}")
+    if int(n_azimuth) < 4 or int(n_alpha) < 2:
+        raise OptionsError(f"need n_azimuth >= 4 and n_alpha >= 2, got {n_azimuth}, {n_alpha}")
+    camera = copy.copy(calib.camera)
+    camera.valid_region_alpha_rad = None  # the region is computed on the plain camera
+    plain = copy.copy(calib)
+    plain.camera = camera
+    umap = uncertainty_map_of(plain, n_cols=n_cols, source=source)
+    where = source or str(calib.extra.get("source", "<calibration>"))
+    names, cov, _ = intrinsics_covariance(calib.statistics, where)
+    az = 2 * math.pi * np.arange(int(n_azimuth)) / int(n_azimuth)
+    top = camera.valid_alpha_rad() * (1 - 1e-9)
+    # the differences step past the edge of the field: evaluate without the observed limit
+    camera = copy.copy(camera)
+    camera.observed_alpha_rad = None
+    alpha = np.linspace(0.0, top, int(n_alpha) + 1)[1:]
+    A, L = np.meshgrid(alpha, az)  # (n_azimuth, n_alpha)
+    rays = np.stack([np.sin(A) * np.cos(L), np.sin(A) * np.sin(L), np.cos(A)], axis=-1).reshape(
+        -1, 3
+    )
+    sigma = ray_sigma_px(camera, rays, cov, names, umap.motion_per_intrinsic).reshape(A.shape)
+    alpha_max = np.empty(len(az))
+    for i, row in enumerate(sigma):
+        bad = np.flatnonzero(~(row <= thr))
+        if not len(bad):
+            alpha_max[i] = alpha[-1]
+        elif bad[0] == 0:
+            alpha_max[i] = 0.0
+        else:
+            j = bad[0]
+            f = (thr - row[j - 1]) / (row[j] - row[j - 1]) if np.isfinite(row[j]) else 0.0
+            alpha_max[i] = alpha[j - 1] + f * (alpha[j] - alpha[j - 1])
+    note = umap.describe() + (f"; {umap.note}" if umap.note else "")
+    return ValidRegion(az, alpha, sigma, alpha_max, thr, note)
+
+
+def with_valid_region(calib, max_sigma_px: float = 1.0, **kwargs):
+    """A copy of ``calib.camera`` holding its valid region (:func:`valid_region`).
+
+    The copy's ``project`` (``valid_only=True``, the default) then returns
+    NaN for rays outside the region, and ``valid_mask`` / ``valid_pixel_mask``
+    exclude them; ``project(..., valid_only=False)`` still answers every ray.
+    Written to calibration files as ``camera.valid_region_alpha_rad``.
+
+    Parameters
+    ----------
+    calib : Calibration
+    max_sigma_px : float
+        Threshold on the projection uncertainty (px).
+    **kwargs
+        Passed to :func:`valid_region` (``n_azimuth``, ``n_alpha``, ``n_cols``,
+        ``source``).
+
+    Returns
+    -------
+    SphereCamera
+        ``valid_region_alpha_rad`` set (shape (n_azimuth,), rad); the
+        learned correction and its tables are shared with ``calib.camera``.
+
+    Examples
+    --------
+    >>> calib.camera = with_valid_region(calib, max_sigma_px=0.5)  # doctest: +SKIP
+    >>> uv = calib.camera.project(points_cam)  # NaN where sigma > 0.5 px  # doctest: +SKIP
+    """
+    region = valid_region(calib, max_sigma_px, **kwargs)
+    cam = copy.copy(calib.camera)
+    cam.valid_region_alpha_rad = tuple(float(a) for a in region.alpha_max_rad)
+    return cam

@@ -102,6 +102,31 @@ def check_uv(uv_px: np.ndarray, name: str = "uv_px") -> np.ndarray:
     return arr
 
 
+def check_region(alpha_by_azimuth_rad) -> tuple[float, ...]:
+    """Validate a valid region's table of incidence limits, as a tuple of float.
+
+    Parameters
+    ----------
+    alpha_by_azimuth_rad : array_like, shape (A,)
+        Largest valid incidence angle (rad, in ``[0, pi]``) at the ``A >= 4``
+        evenly spaced azimuths ``2 pi i / A``.
+
+    Raises
+    ------
+    OptionsError
+        Not a 1-D list of at least 4 finite angles in ``[0, pi]``.
+    """
+    try:
+        a = np.asarray(alpha_by_azimuth_rad, float)
+    except (TypeError, ValueError) as exc:
+        raise OptionsError(f"valid region: not a list of angles ({exc})") from None
+    if a.ndim != 1 or len(a) < 4:
+        raise OptionsError(f"valid region: need a 1-D list of >= 4 angles, got shape {a.shape}")
+    if not np.all(np.isfinite(a)) or np.any(a < 0) or np.any(a > math.pi):
+        raise OptionsError("valid region: angles must be finite and in [0, pi] rad")
+    return tuple(float(x) for x in a)
+
+
 def check_points_cam(points_cam: np.ndarray) -> np.ndarray:
     """Return camera-frame points as a float (N, 3) array or raise ``ValueError``."""
     arr = np.asarray(points_cam, dtype=float)
@@ -646,6 +671,15 @@ class SphereCamera:
         the field its data support. :meth:`project` answers up to it plus
         :data:`VALID_MARGIN_RAD` (:meth:`valid_alpha_rad`) and gives NaN beyond;
         ``None`` (a camera not from data): no limit beyond the model's own.
+    valid_region_alpha_rad : tuple of float or None
+        The valid region where the projection uncertainty is small (built by
+        :func:`gtsam_sphere.analysis.uncertainty.with_valid_region`): the
+        largest incidence angle (rad) at ``A`` evenly spaced ray azimuths
+        ``2 pi i / A`` (``atan2(y, x)`` of the camera-frame ray, x right,
+        y down), linearly interpolated between them (:meth:`region_alpha_rad`).
+        When set, :meth:`project` (``valid_only``), :meth:`valid_mask` and
+        :meth:`valid_pixel_mask` also give NaN / ``False`` outside it.
+        ``None`` (default): no such region.
 
     The learned correction is evaluated through a table
     (:meth:`correction_table`, built on first use and cached; ``exact=True``
@@ -662,6 +696,7 @@ class SphereCamera:
     correction: Correction | None = None
     radial: dict[str, float] | None = None
     observed_alpha_rad: float | None = None
+    valid_region_alpha_rad: tuple[float, ...] | None = None
     # lazily built caches (not compared, not printed, not written to files)
     _table: CorrectionTable | None = field(default=None, init=False, repr=False, compare=False)
     _table_key: tuple | None = field(default=None, init=False, repr=False, compare=False)
@@ -688,6 +723,8 @@ class SphereCamera:
             if not (np.isfinite(a) and 0 < a <= math.pi):
                 raise ValueError(f"SphereCamera: observed_alpha_rad must be in (0, pi], got {a!r}")
             self.observed_alpha_rad = a
+        if self.valid_region_alpha_rad is not None:
+            self.valid_region_alpha_rad = check_region(self.valid_region_alpha_rad)
 
     @property
     def principal_point_px(self) -> np.ndarray:
@@ -936,17 +973,44 @@ class SphereCamera:
             limit = min(limit, self.observed_alpha_rad + VALID_MARGIN_RAD)
         return float(limit)
 
+    def region_alpha_rad(self, azimuth_rad: np.ndarray) -> np.ndarray:
+        """Largest valid incidence angle (rad) at ray azimuths (N,), shape (N,).
+
+        :attr:`valid_region_alpha_rad` linearly interpolated (periodically) at
+        ``azimuth_rad`` (``atan2(y, x)`` of camera-frame rays, rad), capped
+        at :meth:`valid_alpha_rad`; without a region, :meth:`valid_alpha_rad`
+        everywhere. NaN azimuths give NaN.
+        """
+        az = np.asarray(azimuth_rad, float).reshape(-1)
+        limit = self.valid_alpha_rad()
+        if self.valid_region_alpha_rad is None:
+            return np.where(np.isfinite(az), limit, np.nan)
+        table = np.asarray(self.valid_region_alpha_rad, float)
+        n = len(table)
+        with np.errstate(invalid="ignore"):
+            x = np.mod(az, 2 * math.pi) * (n / (2 * math.pi))
+            i = np.clip(np.floor(x), 0, n - 1)
+            f = x - i
+            i = np.nan_to_num(i).astype(int)
+            out = (1 - f) * table[i] + f * table[(i + 1) % n]
+        return np.minimum(out, limit)
+
     def valid_mask(self, points_cam: np.ndarray) -> np.ndarray:
         """Camera-frame points (N, 3) whose ray lies in the valid field, (N,) bool.
 
-        ``incidence <= valid_alpha_rad()`` (and the point is finite and not the
+        ``incidence <= valid_alpha_rad()``, and with a valid region
+        (:attr:`valid_region_alpha_rad`) ``incidence <=
+        region_alpha_rad(azimuth)`` (and the point is finite and not the
         perspective centre): the rays :meth:`project` answers for.
         """
         p = check_points_cam(points_cam)
         with np.errstate(invalid="ignore"):
             alpha = np.arctan2(np.hypot(p[:, 0], p[:, 1]), p[:, 2])
             ok = np.isfinite(p).all(axis=1) & np.any(p != 0, axis=1)
-            return ok & (alpha <= self.valid_alpha_rad())
+            ok &= alpha <= self.valid_alpha_rad()
+            if self.valid_region_alpha_rad is not None:
+                ok &= alpha <= self.region_alpha_rad(np.arctan2(p[:, 1], p[:, 0]))
+            return ok
 
     def valid_pixel_mask(self, uv_px: np.ndarray, exact: bool = False) -> np.ndarray:
         """Raw pixels (N, 2) inside the image whose ray lies in the valid field, (N,) bool.
@@ -1106,14 +1170,18 @@ class SphereCamera:
             True (default): NaN for rays past :meth:`valid_alpha_rad` (the
             observed field plus :data:`VALID_MARGIN_RAD`, and the radial
             mapping's one-to-one field), which the model would otherwise fold
-            back into the image. False: every ray the model has a pixel for.
+            back into the image, and, when the camera holds a valid region
+            (:attr:`valid_region_alpha_rad`, by request:
+            :func:`gtsam_sphere.analysis.uncertainty.with_valid_region`), for
+            rays outside it. False: every ray the model has a pixel for.
 
         Returns
         -------
         uv_px : ndarray, shape (N, 2)
             NaN where the model has no pixel for the point:
 
-            - with ``valid_only``, a ray beyond :meth:`valid_alpha_rad`;
+            - with ``valid_only``, a ray beyond :meth:`valid_alpha_rad` or
+              outside the valid region (:meth:`valid_mask` is ``False``);
             - the perspective centre itself (``|P| = 0``);
             - sphere mapping with Brown terms, a ray within
               :meth:`fold_profile` ``gap_deg`` of 90 deg on an azimuth where
@@ -1142,6 +1210,8 @@ class SphereCamera:
                     if alpha is None:
                         alpha = np.arctan2(np.hypot(p[:, 0], p[:, 1]), p[:, 2])
                     ideal[~(alpha <= limit)] = np.nan
+            if self.valid_region_alpha_rad is not None:
+                ideal[~self.valid_mask(p)] = np.nan
         pp = self.principal_point_px
         if not exact and self.correction is not None:
             table = self.distortion_table()
@@ -1595,4 +1665,6 @@ class SphereCamera:
             d["brown_scale_px"] = self.brown_scale_px
         if self.observed_alpha_rad is not None:
             d["observed_alpha_rad"] = self.observed_alpha_rad
+        if self.valid_region_alpha_rad is not None:
+            d["valid_region_alpha_rad"] = list(self.valid_region_alpha_rad)
         return d

@@ -316,6 +316,7 @@ def camera_from_dict(cam: dict, source: str = "<calibration>") -> SphereCamera:
             observed_alpha_rad=None
             if cam.get("observed_alpha_rad") is None
             else float(cam["observed_alpha_rad"]),
+            valid_region_alpha_rad=cam.get("valid_region_alpha_rad"),
         )
     except KeyError as exc:
         raise DatasetError(f"{source}: camera entry misses {exc}") from None
