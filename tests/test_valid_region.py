@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 import pytest
+from helpers import bare_calibration
 
 from gtsam_sphere.analysis.uncertainty import (
     ray_sigma_px,
@@ -47,23 +48,9 @@ def _calibration(kind: str) -> Calibration:
     cam, names, cov = {"brown": _brown, "radial": _radial}[kind]()
     rng = np.random.default_rng(0)
     uv = rng.uniform([200, 150], [600, 450], size=(300, 2))
-    return Calibration(
-        model="brown",
-        camera=cam,
-        image_ids=[],
-        cam_from_world_R=np.zeros((0, 3, 3)),
-        cam_from_world_t=np.zeros((0, 3)),
-        target_ids=[],
-        target_xyz=np.zeros((0, 3)),
-        statistics={
-            "rms_px": 0.3,
-            "n_observations": 300,
-            "n_rejected": 0,
-            "intrinsics_covariance": cov.tolist(),
-            "intrinsics_names": names,
-        },
-        extra={"observations": {"uv_px": uv}},
-    )
+    calib = bare_calibration(cam, uv)
+    calib.statistics.update(rms_px=0.3, intrinsics_covariance=cov.tolist(), intrinsics_names=names)
+    return calib
 
 
 def _rays(n: int, max_alpha: float, seed: int = 1) -> np.ndarray:
