@@ -385,6 +385,7 @@ def test_small_circle_is_found_as_a_disc():
     assert observed_disc(data["uv_px"], 1600, 1200) is None
 
 
+@pytest.mark.slow  # 12 s: a full initialisation of a 3D-object set (CI runs it)
 def test_3d_object_picks_the_right_focal_scale():
     """A cube corner of three tag grids seen by a 1280x800 fisheye (real case of issue 12)."""
     lens = KannalaBrandt(f=330.0, cx=640.0, cy=400.0, k1=-0.01, k2=0.002, max_angle_deg=98.0)
@@ -410,6 +411,7 @@ def test_3d_object_picks_the_right_focal_scale():
     assert rot_err < 2.0 and pos_err < 0.05, (rot_err, pos_err)
 
 
+@pytest.mark.slow  # 18 s on 2 cores: every hypothesis is scanned before it fails (CI runs it)
 def test_unexplainable_data_fails_fast_with_the_hypotheses_tried():
     """Pixels unrelated to the targets: no hypothesis explains them -> a clear error."""
     data = simulate(6, "equidistant", 300.0, 180.0, 1200, 1000, 8, 400)

@@ -93,6 +93,7 @@ def test_camera_ids_of_topics():
     ]
 
 
+@pytest.mark.slow  # renders a rig into a bag and detects it: 5-8 s each (CI runs it)
 @pytest.mark.parametrize("kind", ["ros1", "ros2"])
 def test_detect_bag_two_topics_is_a_rig(tmp_path, views, kind, capsys):
     bag = tmp_path / ("cams.bag" if kind == "ros1" else "cams")

@@ -77,6 +77,7 @@ def test_cli_exits_2_naming_the_image(tmp_path, capsys):
     capsys.readouterr()
 
 
+@pytest.mark.slow  # 9 s: detection over the real fish_1 images (CI runs it)
 def test_real_fish_1_described_as_4x6_is_refused():
     paths = sorted((DATA / "images" / "fish_1").glob("*.jpg"))[:4]
     if not paths:
