@@ -155,3 +155,27 @@ def test_noise_free_data_converges_and_is_trusted():
     assert st["rms_px"] < 1e-3
     lens = sim.truth["lens"]
     assert abs(calib.camera.c - lens["f"]) < 1e-3 and abs(calib.camera.xp - lens["cx"]) < 1e-3
+
+
+@pytest.mark.slow  # a 12-image calibration with kNN rounds: 6 s
+def test_a_given_sigma_is_kept_through_the_knn_rounds():
+    """--sigma-px fixes the image noise for every stage, the kNN rounds' adjustments included."""
+    sim = simulate_room(
+        SimulationOptions(
+            lens="kannala-brandt",
+            fov_deg=150.0,
+            noise_px=0.3,
+            seed=5,
+            n_images=12,
+            n_targets=120,
+            n_checkpoints=20,
+            width=1600,
+            height=1200,
+        )
+    )
+    options = CalibrationOptions(model="radial+knn", sigma_px=0.5, covariance=False)
+    lines = []
+    calib = calibrate(parse_dataset(sim.dataset), options, lines.append)
+    assert any(line.startswith("kNN round 1") for line in lines)  # the loop ran
+    assert calib.statistics["sigma_px"] == 0.5
+    assert not any("robust scale estimate" in line for line in lines)
