@@ -210,6 +210,19 @@ def _mestimator_parameter(m, loss: Loss) -> float | None:
     return float(k) if ok else None
 
 
+def check_keys(keys, n: int, name: str) -> np.ndarray:
+    """GTSAM keys of ``n`` observations as a (n,) uint64 array (a scalar is repeated).
+
+    Raises ``ValueError`` naming ``name`` and the shape it got when they do not fit.
+    """
+    arr = np.asarray(keys, dtype=np.uint64).reshape(-1)
+    if arr.size == 1 and n != 1:
+        arr = np.full(n, arr[0], dtype=np.uint64)
+    if arr.shape != (n,):
+        raise ValueError(f"{name} must have shape ({n},) like uv_px, got {arr.shape}")
+    return arr
+
+
 def apply_left(J: np.ndarray, left: np.ndarray, out: np.ndarray) -> None:
     """``out[:, :, n] = left_n @ J[:, :, n]``: weigh the Jacobian rows of observations.
 

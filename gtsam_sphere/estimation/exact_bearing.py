@@ -64,6 +64,7 @@ import numpy as np
 
 from ..core.camera import check_uv
 from ..core.rays import bearings, camera_of
+from .engine import check_keys
 
 __all__ = [
     "ExactBearings",
@@ -276,8 +277,8 @@ class ExactBearings:
             Error ``U t`` (whitened, dimensionless), measurement ``(0, 0)``.
         """
         n = len(self)
-        pk = _keys(pose_keys, n, "pose_keys")
-        lk = _keys(point_keys, n, "point_keys")
+        pk = check_keys(pose_keys, n, "pose_keys")
+        lk = check_keys(point_keys, n, "point_keys")
         self._check(slice(None))
         noise = self.noise_model(robust)
         zero = np.zeros(2)
@@ -308,7 +309,7 @@ class ExactBearings:
             Default: GTSAM's, with the degeneracy mode ``ZERO_ON_DEGENERACY``.
         """
         n = len(self)
-        pk = _keys(pose_keys, n, "pose_keys")
+        pk = check_keys(pose_keys, n, "pose_keys")
         self._check(slice(None))
         rig = gtsam.CameraSetPinholePoseCal3_S2()
         for k in range(n):
@@ -322,15 +323,6 @@ class ExactBearings:
         for k in range(n):
             factor.add(np.zeros(2), int(pk[k]), k)
         return factor
-
-
-def _keys(keys, n: int, name: str) -> np.ndarray:
-    arr = np.asarray(keys, dtype=np.uint64).reshape(-1)
-    if arr.size == 1 and n != 1:
-        arr = np.full(n, arr[0], dtype=np.uint64)
-    if arr.shape != (n,):
-        raise ValueError(f"{name} must have shape ({n},), got {arr.shape}")
-    return arr
 
 
 def exact_bearing_factors(
@@ -450,8 +442,8 @@ def rig_exact_bearing_factors(
     ids = np.asarray(list(camera_ids), dtype=object)
     if ids.shape != (len(uv),):
         raise ValueError(f"camera_ids must have length {len(uv)}, got {ids.shape}")
-    bk = _keys(body_keys, len(uv), "body_keys")
-    lk = _keys(point_keys, len(uv), "point_keys")
+    bk = check_keys(body_keys, len(uv), "body_keys")
+    lk = check_keys(point_keys, len(uv), "point_keys")
     b_from_r = body_from_rig or gtsam.Pose3()
     out: list = [None] * len(uv)
     for cid in dict.fromkeys(ids.tolist()):

@@ -72,7 +72,7 @@ import numpy as np
 from ..core.camera import SphereCamera, check_uv
 from ..core.rays import bearings as bearings  # re-exported: its home is the core
 from ..core.rays import camera_of
-from .engine import FactorEngine, FrozenMeasurement, ProjectionModel, Whitener
+from .engine import FactorEngine, FrozenMeasurement, ProjectionModel, Whitener, check_keys
 from .optimize import levenberg_marquardt as levenberg_marquardt  # re-exported
 
 __all__ = [
@@ -86,16 +86,6 @@ __all__ = [
     "make_projection_factor",
     "model_scale_px_per_rad",
 ]
-
-
-def _keys(keys, n: int, name: str) -> np.ndarray:
-    """Keys as a (n,) uint64 array (a scalar is repeated)."""
-    arr = np.asarray(keys, dtype=np.uint64).reshape(-1)
-    if arr.size == 1 and n != 1:
-        arr = np.full(n, arr[0], dtype=np.uint64)
-    if arr.shape != (n,):
-        raise ValueError(f"{name} must have shape ({n},) like uv_px, got {arr.shape}")
-    return arr
 
 
 # --------------------------------------------------------------------------- pixel factors
@@ -248,8 +238,8 @@ class ProjectionBlocks:
         n = len(uv)
         if n == 0:
             raise ValueError("no observations")
-        pk = _keys(pose_keys, n, "pose_keys")
-        lk = _keys(point_keys, n, "point_keys")
+        pk = check_keys(pose_keys, n, "pose_keys")
+        lk = check_keys(point_keys, n, "point_keys")
         self.ideal_px = self.camera.ideal_from_pixels(uv)
         bad = np.flatnonzero(~np.isfinite(self.ideal_px).all(1))
         if len(bad):
@@ -559,8 +549,8 @@ def make_bearing_factors(
     """
     uv = check_uv(uv_px)
     n = len(uv)
-    pk = _keys(pose_keys, n, "pose_keys")
-    lk = _keys(point_keys, n, "point_keys")
+    pk = check_keys(pose_keys, n, "pose_keys")
+    lk = check_keys(point_keys, n, "point_keys")
     rays = bearings(calibration_or_camera, uv, hemisphere)
     sig = bearing_sigma_rad(calibration_or_camera, uv, sigma_px, hemisphere)
     bad = np.flatnonzero(~(np.isfinite(rays).all(1) & np.isfinite(sig) & (sig > 0)))
