@@ -1829,7 +1829,7 @@ def check_target_options(args) -> None:
 def run_cli(args) -> int:
     """Run ``gtsam-sphere export``: 0 on success, 1 if the fit is poor (bad input raises)."""
     from ..core.errors import OptionsError
-    from ..io.calibration import load_calibration
+    from ..io.calibration import load_calibration, single_camera
 
     check_target_options(args)
     if args.target in RIG_TARGETS:  # export_rig.run_cli (the command line routes it)
@@ -1837,23 +1837,9 @@ def run_cli(args) -> int:
     if args.target in FORMAT_TARGETS:  # export_formats.run_cli (the command line routes it)
         raise OptionsError(f"--to {args.target}: run it with export_formats.run_cli")
     calib = load_calibration(args.calibration)
-    is_rig = hasattr(calib, "camera_ids")
-    if is_rig:
-        if args.camera is None:
-            raise OptionsError(
-                f"{args.calibration} is a rig (cameras {calib.camera_ids}): name the camera "
-                f"to export with --camera ID, or use --to kalibr / --to opencv-stereo"
-            )
-        if args.camera not in calib.cameras:
-            raise OptionsError(
-                f"--camera {args.camera!r}: no such camera in {args.calibration} "
-                f"(cameras {calib.camera_ids})"
-            )
-        calib = calib.camera_calibration(args.camera)
-    elif args.camera is not None:
-        raise OptionsError(
-            f"--camera {args.camera!r}: {args.calibration} is a single-camera calibration"
-        )
+    calib = single_camera(
+        calib, args.camera, args.calibration, ", or use --to kalibr / --to opencv-stereo"
+    )
     result = export_calibration(
         calib,
         args.target,

@@ -354,25 +354,14 @@ def add_cli_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run_cli(args: argparse.Namespace) -> int:
     """``gtsam-sphere compare CALIB.json --with camchain.yaml``: print the differences."""
-    from ..io.calibration import load_calibration
+    from ..io.calibration import load_calibration, single_camera
 
     calib = load_calibration(args.dataset)
     if str(args.with_).endswith(".cameramodel"):
         from .export_formats import read_cameramodel
 
         mrcal_cam = read_cameramodel(args.with_)
-        if hasattr(calib, "camera_ids"):
-            if not args.camera:
-                raise OptionsError(
-                    f"{args.dataset} is a rig ({', '.join(calib.camera_ids)}): name the camera "
-                    f"{args.with_} describes with --camera"
-                )
-            if args.camera not in calib.camera_ids:
-                raise OptionsError(
-                    f"--camera {args.camera!r} is not a camera of {args.dataset} "
-                    f"({', '.join(calib.camera_ids)})"
-                )
-            calib = calib.camera_calibration(args.camera)
+        calib = single_camera(calib, args.camera or None, args.dataset, f" ({args.with_})")
         print(compare_with_kalibr(calib, mrcal_cam, region=args.region).summary())
         return 0
     cams = read_kalibr_camchain(args.with_)

@@ -712,7 +712,7 @@ def add_cli_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run_cli(args) -> int:
     """Run ``gtsam-sphere undistort``; 0 on success (bad input raises an ``InputError``)."""
-    from ..io.calibration import load_calibration
+    from ..io.calibration import load_calibration, single_camera
 
     calib = load_calibration(args.calibration)
     if not Path(args.image).is_file():
@@ -722,25 +722,7 @@ def run_cli(args) -> int:
     for option in ("stereo_camera", "stereo_output"):
         if getattr(args, option, None) is not None:
             raise OptionsError(f"--{option.replace('_', '-')} applies to --stereo only")
-    camera_id = getattr(args, "camera", None)
-    if hasattr(calib, "camera_ids"):  # calibration@2: one camera of the rig
-        if camera_id is None:
-            raise OptionsError(
-                f"{args.calibration} is a rig (cameras {calib.camera_ids}): name the camera "
-                "that took the image with --camera ID"
-            )
-        if camera_id not in calib.cameras:
-            raise OptionsError(
-                f"--camera {camera_id!r}: no such camera in {args.calibration} "
-                f"(cameras {calib.camera_ids})"
-            )
-        cam = calib.cameras[camera_id]
-    elif camera_id is not None:
-        raise OptionsError(
-            f"--camera {camera_id!r}: {args.calibration} is a single-camera calibration"
-        )
-    else:
-        cam = calib.camera
+    cam = single_camera(calib, getattr(args, "camera", None), args.calibration).camera
     image = _read_image(args.image, cam, args.calibration)
     try:
         tables = remap_tables(cam, args.kind, args.fov_deg, _parse_size(args.size))

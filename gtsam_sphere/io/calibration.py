@@ -11,6 +11,7 @@ import numpy as np
 
 from ..core.camera import SphereCamera
 from ..core.correction_model import correction_from_dict
+from ..core.errors import OptionsError
 from ..core.rays import bearings
 from .dataset import (
     CALIBRATION_FORMAT,
@@ -513,3 +514,41 @@ def _rig_calibration_from_doc(doc: dict, source: str) -> RigCalibration:
         units=doc.get("units", "m"),
         extra={k: v for k, v in doc.items() if k not in known},
     )
+
+
+def single_camera(calib, camera_id: str | None, source: str, hint: str = "") -> Calibration:
+    """The ``calibration@1`` a one-camera command works on, by the ``--camera`` rules.
+
+    A rig (``calibration@2``) needs ``camera_id`` and gives that camera
+    (:meth:`RigCalibration.camera_calibration`); a single-camera calibration takes none.
+
+    Parameters
+    ----------
+    calib : Calibration or RigCalibration
+    camera_id : str or None
+        The ``--camera`` option.
+    source : str
+        The calibration file's name, for the messages.
+    hint : str
+        Appended to the message asking for ``--camera`` (e.g. the rig commands).
+
+    Raises
+    ------
+    OptionsError
+        A rig without ``camera_id``, an unknown camera, or ``camera_id`` with a
+        single-camera calibration; the message names the item.
+    """
+    if hasattr(calib, "camera_ids"):
+        if camera_id is None:
+            raise OptionsError(
+                f"{source} is a rig (cameras {calib.camera_ids}): name the camera with "
+                f"--camera ID{hint}"
+            )
+        if camera_id not in calib.cameras:
+            raise OptionsError(
+                f"--camera {camera_id!r}: no such camera in {source} (cameras {calib.camera_ids})"
+            )
+        return calib.camera_calibration(camera_id)
+    if camera_id is not None:
+        raise OptionsError(f"--camera {camera_id!r}: {source} is a single-camera calibration")
+    return calib
