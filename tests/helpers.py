@@ -47,3 +47,29 @@ def bare_calibration(camera, uv_px=None):
         },
         extra=extra,
     )
+
+
+def scene_pose(scene, i):
+    """``world_from_cam`` of image ``i`` of a simulated building scene, as a ``gtsam.Pose3``."""
+    import gtsam
+
+    return gtsam.Pose3(gtsam.Rot3(scene.world_from_cam_R[i]), scene.world_from_cam_t[i])
+
+
+def perturbed_values(scene, seed, rot=0.01, trans=0.05, pts=0.08):
+    """``gtsam.Values`` of a building scene's poses and landmarks, perturbed (seeded): poses by
+    ``rot`` rad / ``trans`` m (``perturb_poses``), landmarks by ``pts`` m per coordinate."""
+    import gtsam
+
+    from gtsam_sphere.estimation.graph import point_key, pose_key
+    from gtsam_sphere.simulate.building import perturb_poses
+
+    rng = np.random.default_rng(seed)
+    R, t = perturb_poses(scene.world_from_cam_R, scene.world_from_cam_t, rot, trans, rng)
+    P = scene.points_world + rng.normal(scale=pts, size=scene.points_world.shape)
+    values = gtsam.Values()
+    for i in range(scene.n_images):
+        values.insert(pose_key(i), gtsam.Pose3(gtsam.Rot3(R[i]), t[i]))
+    for j in range(scene.n_points):
+        values.insert(point_key(j), P[j])
+    return values

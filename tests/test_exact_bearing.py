@@ -5,6 +5,7 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 import pytest
+from helpers import perturbed_values, scene_pose
 
 from gtsam_sphere.core.camera import SphereCamera
 from gtsam_sphere.estimation.exact_bearing import (
@@ -20,7 +21,7 @@ from gtsam_sphere.estimation.external import (
     make_projection_factor,
 )
 from gtsam_sphere.estimation.graph import point_key, pose_key
-from gtsam_sphere.simulate.building import fisheye_camera, perturb_poses, simulate_building
+from gtsam_sphere.simulate.building import fisheye_camera, simulate_building
 
 M = gtsam.noiseModel
 HUBER = M.mEstimator.Huber.Create(2.45)
@@ -156,22 +157,6 @@ def test_raw_pixel_noise_goes_through_the_measurement_corrections():
 # ----------------------------------------------------------------------------- SLAM graph
 
 
-def _pose(scene, i):
-    return gtsam.Pose3(gtsam.Rot3(scene.world_from_cam_R[i]), scene.world_from_cam_t[i])
-
-
-def _initial(scene, seed, rot=0.01, trans=0.05, pts=0.08):
-    rng = np.random.default_rng(seed)
-    R, t = perturb_poses(scene.world_from_cam_R, scene.world_from_cam_t, rot, trans, rng)
-    P = scene.points_world + rng.normal(scale=pts, size=scene.points_world.shape)
-    values = gtsam.Values()
-    for i in range(scene.n_images):
-        values.insert(pose_key(i), gtsam.Pose3(gtsam.Rot3(R[i]), t[i]))
-    for j in range(scene.n_points):
-        values.insert(point_key(j), P[j])
-    return values
-
-
 ODOMETRY = M.Diagonal.Sigmas(np.r_[[0.01] * 3, [0.02] * 3])
 PRIOR = M.Isotropic.Sigma(6, 1e-4)
 
@@ -179,8 +164,8 @@ PRIOR = M.Isotropic.Sigma(6, 1e-4)
 def _odometry(scene, i):
     """Prior on pose 0, or the (noise-free) odometry from image ``i - 1`` to ``i``."""
     if i == 0:
-        return gtsam.PriorFactorPose3(pose_key(0), _pose(scene, 0), PRIOR)
-    rel = _pose(scene, i - 1).between(_pose(scene, i))
+        return gtsam.PriorFactorPose3(pose_key(0), scene_pose(scene, 0), PRIOR)
+    rel = scene_pose(scene, i - 1).between(scene_pose(scene, i))
     return gtsam.BetweenFactorPose3(pose_key(i - 1), pose_key(i), rel, ODOMETRY)
 
 
@@ -210,7 +195,7 @@ def solutions(scene):
     pk = np.array([pose_key(i) for i in scene.obs_image], np.uint64)
     lk = np.array([point_key(j) for j in scene.obs_point], np.uint64)
     pixel_noise = M.Robust.Create(HUBER, M.Isotropic.Sigma(2, 0.3))
-    initial = _initial(scene, seed=3)
+    initial = perturbed_values(scene, seed=3)
     out = {}
     for path in ("pixel", "exact", "isotropic"):
         graph = gtsam.NonlinearFactorGraph()
@@ -263,7 +248,7 @@ def test_exact_bearings_reach_the_pixel_paths_landmarks(scene, solutions):
 def test_exact_bearings_in_isam2(scene, solutions):
     """Images in trajectory order with odometry, landmarks once seen twice: iSAM2 on the
     exact-bearing C++ factors ends at the batch optimum."""
-    initial = _initial(scene, seed=3)
+    initial = perturbed_values(scene, seed=3)
     params = gtsam.ISAM2Params()
     params.setRelinearizeThreshold(1e-6)
     params.relinearizeSkip = 1
@@ -315,12 +300,12 @@ def test_smart_factor_variant_recovers_the_poses(scene, solutions):
         keys = [pose_key(i) for i in scene.obs_image[track]]
         graph.add(exact_bearing_smart_factor(scene.camera, scene.uv_px[track], keys, 0.3))
     initial = gtsam.Values()
-    start = _initial(scene, seed=3)
+    start = perturbed_values(scene, seed=3)
     for i in range(scene.n_images):
         initial.insert(pose_key(i), start.atPose3(pose_key(i)))
     result = gtsam.LevenbergMarquardtOptimizer(graph, initial, _tight()).optimize()
     for i in range(scene.n_images):
-        truth = _pose(scene, i)
+        truth = scene_pose(scene, i)
         est = result.atPose3(pose_key(i))
         assert np.linalg.norm(truth.localCoordinates(est)) < 0.02
         ref = solutions["exact"].atPose3(pose_key(i))

@@ -11,6 +11,7 @@ import gtsam
 import numpy as np
 import pytest
 from gtsam.utils.numerical_derivative import numericalDerivative21, numericalDerivative22
+from helpers import perturbed_values, scene_pose
 
 from gtsam_sphere.core.camera import SphereCamera
 from gtsam_sphere.core.least_squares import LMStatus
@@ -27,7 +28,7 @@ from gtsam_sphere.estimation.external import (
 )
 from gtsam_sphere.estimation.graph import point_key, pose_key
 from gtsam_sphere.io.calibration import Calibration
-from gtsam_sphere.simulate.building import fisheye_camera, perturb_poses, simulate_building
+from gtsam_sphere.simulate.building import fisheye_camera, simulate_building
 
 ROOT = Path(__file__).resolve().parents[1]
 M = gtsam.noiseModel
@@ -176,7 +177,7 @@ def test_cache_never_serves_stale_results():
     single = gtsam.NonlinearFactorGraph()
     for k in range(scene.n_observations):
         single.add(make_projection_factor(scene.camera, scene.uv_px[k], pk[k], lk[k], noise))
-    estimates = [_perturbed_values(scene, seed) for seed in (1, 2)]
+    estimates = [perturbed_values(scene, seed) for seed in (1, 2)]
     for values in estimates + estimates[::-1]:
         assert graph.error(values) == pytest.approx(single.error(values), rel=1e-12)
         np.testing.assert_allclose(
@@ -229,7 +230,7 @@ def test_any_grouping_linearises_like_single_factors():
     for k in range(scene.n_observations):
         single.add(make_projection_factor(scene.camera, scene.uv_px[k], pk[k], lk[k], noise))
     for seed in (1, 2, 1):
-        values = _perturbed_values(scene, seed)
+        values = perturbed_values(scene, seed)
         Hs, gs = single.linearize(values).hessian()
         Hb, gb = graph.linearize(values).hessian()
         np.testing.assert_allclose(Hb, Hs, rtol=1e-9, atol=1e-9 * np.abs(Hs).max())
@@ -249,8 +250,8 @@ def test_any_grouping_linearises_like_single_factors():
             np.testing.assert_allclose(A, B, rtol=1e-9, atol=1e-9 * np.abs(B).max())
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(2)
-    out, info = levenberg_marquardt(graph, _perturbed_values(scene, 4), params)
-    ref, _ = levenberg_marquardt(single, _perturbed_values(scene, 4), params)
+    out, info = levenberg_marquardt(graph, perturbed_values(scene, 4), params)
+    ref, _ = levenberg_marquardt(single, perturbed_values(scene, 4), params)
     assert info["error"] == pytest.approx(single.error(out), rel=1e-12)
     assert info["error"] == pytest.approx(single.error(ref), rel=1e-9)
 
@@ -266,7 +267,7 @@ def test_robust_downweights_an_injected_outlier():
     )
     sel = np.flatnonzero(scene.obs_image == 10)[:20]
     points = scene.obs_point[sel]
-    truth = _pose(scene, 10)
+    truth = scene_pose(scene, 10)
     init = truth.retract(np.array([0.02, -0.01, 0.015, 0.05, -0.04, 0.03]))
     l2 = M.Isotropic.Sigma(2, 0.3)
     huber = M.Robust.Create(M.mEstimator.Huber.Create(2.45), l2)
@@ -382,28 +383,12 @@ def test_sqrt_information_reproduces_pixel_weighting():
 # ----------------------------------------------------------------------------- bundle adjustment
 
 
-def _pose(scene, i):
-    return gtsam.Pose3(gtsam.Rot3(scene.world_from_cam_R[i]), scene.world_from_cam_t[i])
-
-
-def _perturbed_values(scene, seed, rot=0.01, trans=0.05, pts=0.08):
-    rng = np.random.default_rng(seed)
-    R, t = perturb_poses(scene.world_from_cam_R, scene.world_from_cam_t, rot, trans, rng)
-    P = scene.points_world + rng.normal(scale=pts, size=scene.points_world.shape)
-    values = gtsam.Values()
-    for i in range(scene.n_images):
-        values.insert(pose_key(i), gtsam.Pose3(gtsam.Rot3(R[i]), t[i]))
-    for j in range(scene.n_points):
-        values.insert(point_key(j), P[j])
-    return values
-
-
 def _gauge(scene, graph):
     """Prior on the first pose and noisy-free odometry (fixes the 7-DoF gauge and scale)."""
-    graph.add(gtsam.PriorFactorPose3(pose_key(0), _pose(scene, 0), M.Isotropic.Sigma(6, 1e-4)))
+    graph.add(gtsam.PriorFactorPose3(pose_key(0), scene_pose(scene, 0), M.Isotropic.Sigma(6, 1e-4)))
     odo = M.Diagonal.Sigmas(np.r_[[0.01] * 3, [0.02] * 3])
     for i in range(scene.n_images - 1):
-        rel = _pose(scene, i).between(_pose(scene, i + 1))
+        rel = scene_pose(scene, i).between(scene_pose(scene, i + 1))
         graph.add(gtsam.BetweenFactorPose3(pose_key(i), pose_key(i + 1), rel, odo))
 
 
@@ -411,13 +396,15 @@ def _errors(scene, values):
     rot = max(
         np.linalg.norm(
             gtsam.Rot3.Logmap(
-                _pose(scene, i).rotation().between(values.atPose3(pose_key(i)).rotation())
+                scene_pose(scene, i).rotation().between(values.atPose3(pose_key(i)).rotation())
             )
         )
         for i in range(scene.n_images)
     )
     trans = max(
-        np.linalg.norm(_pose(scene, i).translation() - values.atPose3(pose_key(i)).translation())
+        np.linalg.norm(
+            scene_pose(scene, i).translation() - values.atPose3(pose_key(i)).translation()
+        )
         for i in range(scene.n_images)
     )
     pts = np.array([values.atPoint3(point_key(j)) for j in range(scene.n_points)])
@@ -445,10 +432,10 @@ def test_small_bundle_adjustment_recovers_truth(small_scene, path):
     """From a perturbed start (0.6 deg, 5 cm, landmarks 8 cm) every path reaches the
     optimum it reaches from the truth, and that optimum is within the noise of the truth."""
     scene = small_scene
-    initial = _perturbed_values(scene, seed=3)
+    initial = perturbed_values(scene, seed=3)
     start = _errors(scene, initial)
     result = _solve(scene, path, initial)
-    optimum = _solve(scene, path, _perturbed_values(scene, seed=0, rot=0, trans=0, pts=0))
+    optimum = _solve(scene, path, perturbed_values(scene, seed=0, rot=0, trans=0, pts=0))
     rot, trans, pts = _errors(scene, result)
     assert rot < 5e-3 and trans < 0.02 and pts < 0.02, (path, start, (rot, trans, pts))
     assert pts < 0.2 * start[2] and trans < 0.2 * start[1]
@@ -495,7 +482,9 @@ def _solve(scene, path, initial):
         for i in held:
             graph.add(
                 gtsam.PriorFactorSphericalCamera(
-                    pose_key(i), gtsam.SphericalCamera(_pose(scene, i)), M.Isotropic.Sigma(6, 1e-4)
+                    pose_key(i),
+                    gtsam.SphericalCamera(scene_pose(scene, i)),
+                    M.Isotropic.Sigma(6, 1e-4),
                 )
             )
         values = gtsam.Values()
@@ -555,10 +544,12 @@ def _isam2(scene, initial, pk, lk, noise):
         values.insert(pose_key(i), initial.atPose3(pose_key(i)))
         if i == 0:
             graph.add(
-                gtsam.PriorFactorPose3(pose_key(0), _pose(scene, 0), M.Isotropic.Sigma(6, 1e-4))
+                gtsam.PriorFactorPose3(
+                    pose_key(0), scene_pose(scene, 0), M.Isotropic.Sigma(6, 1e-4)
+                )
             )
         else:
-            rel = _pose(scene, i - 1).between(_pose(scene, i))
+            rel = scene_pose(scene, i - 1).between(scene_pose(scene, i))
             graph.add(gtsam.BetweenFactorPose3(pose_key(i - 1), pose_key(i), rel, odo))
         # a block goes in once all its images are in; its landmark with its first block
         for g in np.flatnonzero((last_image == i) & ~added_block):
@@ -588,7 +579,7 @@ def test_levenberg_marquardt_with_rejected_steps_matches_gtsam(small_scene):
     blocks = ProjectionBlocks(scene.camera, scene.uv_px, pk, lk, noise)
     for f in blocks.factors():
         graph.add(f)
-    initial = _perturbed_values(scene, 3, rot=0.1, trans=0.2, pts=0.5)
+    initial = perturbed_values(scene, 3, rot=0.1, trans=0.2, pts=0.5)
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(100)
     ours, info = levenberg_marquardt(graph, initial, params)
@@ -612,7 +603,7 @@ def test_levenberg_marquardt_matches_gtsam_on_cpp_factors(small_scene):
     _gauge(scene, graph)
     for f in make_bearing_factors(scene.camera, scene.uv_px, pk, lk, 0.3):
         graph.add(f)
-    initial = _perturbed_values(scene, seed=4)
+    initial = perturbed_values(scene, seed=4)
     ours, info = levenberg_marquardt(graph, initial)
     ref = gtsam.LevenbergMarquardtOptimizer(graph, initial).optimize()
     assert info["converged"] and info["iterations"] >= 2
