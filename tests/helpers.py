@@ -73,3 +73,30 @@ def perturbed_values(scene, seed, rot=0.01, trans=0.05, pts=0.08):
     for j in range(scene.n_points):
         values.insert(point_key(j), P[j])
     return values
+
+
+def bare_rig_calibration(cameras, cam_from_rig, model="radial", units="m", rms_px=0.3):
+    """A ``RigCalibration`` holding only its cameras (id -> SphereCamera) and their
+    ``cam_from_rig`` (id -> (R (3, 3), t (3,))): no frames, images or targets."""
+    from gtsam_sphere.io.calibration import RigCalibration
+
+    ids = list(cameras)
+    stats = {"rms_px": rms_px, "n_observations": 0, "n_rejected": 0}
+    return RigCalibration(
+        camera_ids=ids,
+        cameras=dict(cameras),
+        models=dict.fromkeys(ids, model),
+        cam_from_rig=dict(cam_from_rig),
+        frame_ids=[],
+        rig_from_world_R=np.zeros((0, 3, 3)),
+        rig_from_world_t=np.zeros((0, 3)),
+        image_ids=[],
+        image_camera=[],
+        image_frame=[],
+        cam_from_world_R=np.zeros((0, 3, 3)),
+        cam_from_world_t=np.zeros((0, 3)),
+        target_ids=[],
+        target_xyz=np.zeros((0, 3)),
+        statistics={**stats, "cameras": {c: dict(stats) for c in ids}},
+        units=units,
+    )

@@ -5,7 +5,7 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 import pytest
-from helpers import perturbed_values, scene_pose
+from helpers import bare_rig_calibration, perturbed_values, scene_pose
 
 from gtsam_sphere.core.camera import SphereCamera
 from gtsam_sphere.estimation.exact_bearing import (
@@ -318,31 +318,8 @@ def test_smart_factor_variant_recovers_the_poses(scene, solutions):
 def _rig_file(tmp_path, cameras, cam_from_rig):
     """A calibration@2 file of these cameras (no frames, images or targets), read back."""
     from gtsam_sphere import load_calibration
-    from gtsam_sphere.io.calibration import RigCalibration
 
-    ids = list(cameras)
-    rig = RigCalibration(
-        camera_ids=ids,
-        cameras=cameras,
-        models=dict.fromkeys(ids, "radial"),
-        cam_from_rig=cam_from_rig,
-        frame_ids=[],
-        rig_from_world_R=np.zeros((0, 3, 3)),
-        rig_from_world_t=np.zeros((0, 3)),
-        image_ids=[],
-        image_camera=[],
-        image_frame=[],
-        cam_from_world_R=np.zeros((0, 3, 3)),
-        cam_from_world_t=np.zeros((0, 3)),
-        target_ids=[],
-        target_xyz=np.zeros((0, 3)),
-        statistics={
-            "rms_px": 0.3,
-            "n_observations": 0,
-            "n_rejected": 0,
-            "cameras": {c: {"rms_px": 0.3} for c in ids},
-        },
-    )
+    rig = bare_rig_calibration(cameras, cam_from_rig)
     return load_calibration(rig.save(tmp_path / "rig.json"))
 
 

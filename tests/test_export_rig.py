@@ -8,6 +8,7 @@ import cv2
 import numpy as np
 import pytest
 import yaml
+from helpers import bare_rig_calibration
 
 from gtsam_sphere import SphereCamera
 from gtsam_sphere.apps.export import ds_project, eucm_project, kb_project, omni_project, pixel_rays
@@ -44,25 +45,7 @@ def small_rig(n=3, radial=None, units="m") -> RigCalibration:
     poses = {ids[0]: (np.eye(3), np.zeros(3))}
     for k, c in enumerate(ids[1:], 1):
         poses[c] = (rot(0.01 * k, 0.3 * k, -0.02), np.array([-0.12 * k, 0.003, 0.01 * k]))
-    stats = {"rms_px": 0.3, "n_observations": 10, "n_rejected": 0}
-    return RigCalibration(
-        camera_ids=ids,
-        cameras=cams,
-        models={c: "radial" for c in ids},
-        cam_from_rig=poses,
-        frame_ids=[],
-        rig_from_world_R=np.zeros((0, 3, 3)),
-        rig_from_world_t=np.zeros((0, 3)),
-        image_ids=[],
-        image_camera=[],
-        image_frame=[],
-        cam_from_world_R=np.zeros((0, 3, 3)),
-        cam_from_world_t=np.zeros((0, 3)),
-        target_ids=[],
-        target_xyz=np.zeros((0, 3)),
-        statistics={**stats, "cameras": {c: dict(stats) for c in ids}},
-        units=units,
-    )
+    return bare_rig_calibration(cams, poses, units=units)
 
 
 def test_omni_jacobian_matches_finite_differences():
