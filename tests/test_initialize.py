@@ -18,6 +18,7 @@ from gtsam_sphere.simulate.lenses import (
     FieldOfView,
     KannalaBrandt,
     PinholeBrown,
+    SphereLens,
     Stereographic,
     Unified,
     incidence_angle,
@@ -409,6 +410,20 @@ def test_3d_object_picks_the_right_focal_scale():
     assert good.size >= 13
     rot_err, pos_err = _pose_errors(res, data, good)
     assert rot_err < 2.0 and pos_err < 0.05, (rot_err, pos_err)
+
+
+@pytest.mark.slow  # a full initialisation (CI runs it)
+def test_orthographic_lens_within_90_deg_is_not_folded():
+    """The folded sphere hypothesis (tests/test_lens_zoo.py) does not take an ordinary
+    orthographic lens: every pixel is then the image of its front ray only."""
+    lens = SphereLens(f=480.0, cx=799.5, cy=599.5, max_angle_deg=75.0)
+    data = simulate(6, "", 0.0, 0.0, 1600, 1200, 12, 400, lens=lens, scene="object")
+    res = initialize_poses(**_inputs(data), rng=np.random.default_rng(0))
+    assert not res.lens.folded, res.lens.describe()
+    good = np.flatnonzero(res.ok)
+    assert good.size == data["n_images"]
+    rot_err, pos_err = _pose_errors(res, data, good)
+    assert rot_err < 2.0 and pos_err < 0.1, (rot_err, pos_err)
 
 
 @pytest.mark.slow  # 18 s on 2 cores: every hypothesis is scanned before it fails (CI runs it)

@@ -12,7 +12,8 @@ axis, px, comparable across families):
 ``"stereographic"````2 f tan(alpha / 2)``      [0, 175] deg (catadioptric-like)
 ``"equidistant"``  ``f alpha``                [0, 180] deg (may look behind)
 ``"equisolid"``    ``2 f sin(alpha / 2)``     [0, 180] deg
-``"sphere"``       ``f sin(alpha)``           [0, 90] deg (orthographic)
+``"sphere"``       ``f sin(alpha)``           [0, 90] deg (orthographic), or [0, 180]
+                                             deg ``folded`` (two rays per pixel)
 ``"fitted"``       ``f g(alpha)``, ``g`` odd  where ``g`` increases (refined, step 4)
 =================  =========================  ==================================
 
@@ -27,11 +28,14 @@ What the pixels show comes first:
    ``_MIN_HALF_FOV_DEG``.
 2. **Coarse search** over principal points x families x a geometric grid of ``f``
    (ratio 1.15), RANSAC P3P (64 samples, no refinement) on the 4 images with most
-   observations. Every hypothesis is scored in **pixels**, the only scale common to all
-   hypotheses: each image's pose reprojects its targets through the hypothesis and the
-   MSAC cost ``sum(min(e_px^2, thr_px^2))`` uses ``thr_px = 3 % of R_obs``. (Angular
-   costs favour long focal lengths, whose rays are all close together: a 250 deg
-   lens on a small circle was once taken for a 16 deg "sphere".)
+   observations, plus the folded orthographic lens at ``f`` = 1 and 1.15 ``R_obs`` (past
+   90 deg its image folds back at ``r = f``: every pixel is the image of two rays, RANSAC
+   takes the one the pose predicts, and no refit follows). Every hypothesis is scored in
+   **pixels**, the only scale common to all hypotheses: each image's pose reprojects its
+   targets through the hypothesis and the MSAC cost ``sum(min(e_px^2, thr_px^2))``
+   uses ``thr_px = 3 % of R_obs``. (Angular costs favour long focal lengths, whose rays
+   are all close together: a 250 deg lens on a small circle was once taken for a 16 deg
+   "sphere".)
 3. **Scan and zoom**: 13 values of ``f`` 2.3 % apart around the best candidates
    (threshold 2 %), then 5 values 0.6 % apart with pose refinement on up to 8 images
    (threshold 1 %, parabolic step).
@@ -214,6 +218,11 @@ class LensHypothesis:
         Log of the warp ``k`` of the fitted polynomial's variable (0: ``beta = alpha``);
         the ``"fov"`` family has ``log(4)``. The calibration's radial mapping starts
         from it (and estimates it) when it is not 0.
+    folded : bool
+        Only for ``"sphere"``: the orthographic lens past 90 deg, ``r = f sin(alpha)``
+        on [0, 180] deg. Its image folds at ``r = f``: a pixel is the image of two
+        rays, ``alpha`` and ``180 deg - alpha`` (:meth:`candidate_rays`), and RANSAC
+        chooses between them by the pose (:class:`_Problem`).
     """
 
     mapping: str
@@ -222,6 +231,7 @@ class LensHypothesis:
     coeffs: np.ndarray | None = None
     alpha_max_rad: float = float("nan")
     warp_w: float = 0.0
+    folded: bool = False
 
     def beta(self, alpha_rad: np.ndarray) -> np.ndarray:
         """The polynomial's variable at incidence ``alpha_rad`` (rad)."""
@@ -254,6 +264,10 @@ class LensHypothesis:
 
     def radius_px(self, alpha_rad: np.ndarray) -> np.ndarray:
         """Image radius (px) at incidence ``alpha_rad`` (N,); NaN outside the domain."""
+        if self.folded:
+            a = np.asarray(alpha_rad, dtype=float)
+            with np.errstate(invalid="ignore"):
+                return np.where((a >= 0) & (a <= np.pi), self.f_px * np.sin(a), np.nan)
         if self.mapping != "fitted":
             return self.f_px * _rho(self.mapping, alpha_rad)
         a, rho = self._table()
@@ -277,6 +291,18 @@ class LensHypothesis:
         r = np.hypot(d[:, 0], d[:, 1])
         return _rays(d, r, self.alpha_rad(r))
 
+    def candidate_rays(self, uv_px: np.ndarray) -> np.ndarray:
+        """Every ray a pixel may be the image of: (N, 3), or (2N, 3) when ``folded``.
+
+        For a folded hypothesis the front rays (:meth:`rays`) come first, then their
+        mirror images behind the camera (``z -> -z``: incidence ``180 deg - alpha``),
+        so row ``k`` and row ``N + k`` belong to pixel ``k``.
+        """
+        rays = self.rays(uv_px)
+        if not self.folded:
+            return rays
+        return np.concatenate([rays, rays * np.array([1.0, 1.0, -1.0])])
+
     def project(self, points_cam: np.ndarray) -> np.ndarray:
         """Pixels (N, 2) of camera-frame points (N, 3); NaN outside the domain."""
         p = np.asarray(points_cam, dtype=float)
@@ -290,7 +316,8 @@ class LensHypothesis:
     def describe(self) -> str:
         """One line for progress output."""
         pp = self.principal_point_px
-        return f"{self.mapping}, f = {self.f_px:.1f} px, principal point ({pp[0]:.1f}, {pp[1]:.1f})"
+        name = f"{self.mapping} (folded past 90 deg)" if self.folded else self.mapping
+        return f"{name}, f = {self.f_px:.1f} px, principal point ({pp[0]:.1f}, {pp[1]:.1f})"
 
 
 def _family(mapping: str, f_px: float, pp: np.ndarray) -> LensHypothesis:
@@ -302,6 +329,11 @@ def _family(mapping: str, f_px: float, pp: np.ndarray) -> LensHypothesis:
         float(np.radians(_DOMAIN_DEG[mapping])),
         _WARP_W.get(mapping, 0.0),
     )
+
+
+def _folded_sphere(f_px: float, pp: np.ndarray) -> LensHypothesis:
+    """The orthographic lens over [0, 180] deg (``LensHypothesis.folded``)."""
+    return LensHypothesis("sphere", float(f_px), np.asarray(pp, float), None, np.pi, 0.0, True)
 
 
 def observed_disc(uv_px: np.ndarray, width: int, height: int):
@@ -447,10 +479,13 @@ class _Problem:
         Uses every observation of the image when ``all_observations`` is set, else the
         scoring subset (errors are then of that subset)."""
         idx = (self.obs_of_image if self.all_observations else self.scored_of_image)[image]
-        rays = hyp.rays(self.uv[idx])
+        rays = hyp.candidate_rays(self.uv[idx])
+        points = self.points[idx]
+        if rays.shape[0] != idx.size:  # a folded lens: both rays of every pixel compete
+            points = np.concatenate([points, points])
         res = ransac_pose(
             rays,
-            self.points[idx],
+            points,
             _ransac_threshold_rad(hyp, thr_px),
             np.random.default_rng(seed),
             max_iterations=max_iterations,
@@ -837,20 +872,19 @@ def initialize_poses(
     for pp in pps:
         ro = r_obs(pp)
         thr = 0.03 * ro
-        for m in mappings:
-            grid = _focal_grid(m, ro)
+        families = [[_family(m, f, pp) for f in _focal_grid(m, ro)] for m in mappings]
+        if "sphere" in mappings:  # an orthographic lens past 180 deg: its image ends at r = f
+            families.append([_folded_sphere(f, pp) for f in ro * np.array([1.0, _GRID_RATIO])])
+        for grid in families:
             costs: list[float] = []
-            for f in grid:  # the best so far bounds the rest (argmin unchanged)
+            for hyp in grid:  # the best so far bounds the rest (argmin unchanged)
                 bound = min(costs, default=np.inf)
-                costs.append(
-                    problem.cost(
-                        coarse_images, coarse_seeds, _family(m, f, pp), thr, 64, False, bound
-                    )
-                )
+                costs.append(problem.cost(coarse_images, coarse_seeds, hyp, thr, 64, False, bound))
             j = int(np.argmin(costs))
-            coarse.append((costs[j] / thr**2, _family(m, grid[j], pp), ro))
+            coarse.append((costs[j] / thr**2, grid[j], ro))
+            name = "sphere-folded" if grid[j].folded else grid[j].mapping
             say(
-                f"coarse: {m:13s} f = {grid[j]:8.1f} px, pp ({pp[0]:.0f}, {pp[1]:.0f}): "
+                f"coarse: {name:13s} f = {grid[j].f_px:8.1f} px, pp ({pp[0]:.0f}, {pp[1]:.0f}): "
                 f"cost {costs[j] / thr**2:.4g}"
             )
     # 3. scan and zoom the promising ones (costs in units of thr^2: comparable across pp)
@@ -964,7 +998,7 @@ def _refit(problem, images, seeds, hyp, thr, cost, say):
     the radial polynomial and the poses (:func:`_joint_refine`); repeated while the
     pixel cost (RANSAC poses again) drops by 2 %."""
     best, best_cost = hyp, cost
-    for _ in range(2):
+    for _ in range(0 if hyp.folded else 2):  # no odd polynomial follows a fold
         n = problem.counts.size
         rot = np.full((n, 3, 3), np.nan)
         trans = np.full((n, 3), np.nan)
@@ -990,7 +1024,7 @@ def _refit(problem, images, seeds, hyp, thr, cost, say):
 def _final_refit(problem, images, lens, thr, seeds, min_inliers, posed, say):
     """Joint refinements over every posed image (up to 3), kept while they explain at
     least 0.5 % more observations once every image is posed again by RANSAC."""
-    for _ in range(3):
+    for _ in range(0 if lens.folded else 3):  # no odd polynomial follows a fold
         rot, trans, ok, mask, _, lens = posed
         problem.all_observations = True
         refined = _joint_refine(problem, images, lens, rot, trans, mask, thr)
