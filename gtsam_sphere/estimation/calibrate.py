@@ -38,7 +38,14 @@ from .graph import (
     point_key,
     pose_key,
 )
-from .optimize import OptimizationResult, OptimizerKind, OptimizerOptions, make_ordering, optimize
+from .optimize import (
+    OptimizationResult,
+    OptimizerKind,
+    OptimizerOptions,
+    make_ordering,
+    marginal_covariances,
+    optimize,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -1094,13 +1101,8 @@ def intrinsics_covariance(problem: BundleProblem, values: gtsam.Values) -> np.nd
     The graph is whitened with the estimated ``sigma_px`` and robust weights,
     so this is the a-posteriori precision. ``None`` if the system is singular.
     """
-    graph = problem.build()
-    try:
-        marginals = gtsam.Marginals(graph, values)
-        cov = marginals.marginalCovariance(INTRINSICS_KEY)
-    except RuntimeError:
-        return None
-    return np.asarray(cov)
+    cov = marginal_covariances(problem.build(), values, [INTRINSICS_KEY])
+    return None if cov is None else cov[INTRINSICS_KEY]
 
 
 def intrinsics_sigma(problem: BundleProblem, values: gtsam.Values) -> np.ndarray | None:

@@ -43,7 +43,9 @@ What the pixels show comes first:
    bearings) and a robust *linear* fit of the principal point and an odd polynomial
    ``r(alpha) = b1 alpha + b3 alpha^3 + ...`` to the inliers. This reaches lenses
    between the families (Kannala-Brandt, unified, double sphere) and principal points
-   off the image centre. The lowest pixel cost wins.
+   off the image centre. The folded orthographic lens is tried at each refit's principal
+   point and axial scale too (a polynomial cannot fold, but finds both). The lowest pixel
+   cost wins.
 5. **All images** with the winner; when RANSAC rejects most observations the next
    hypothesis is tried, and when none explains the data :class:`InitialisationError`
    says so at once (seconds, not after a long failing adjustment).
@@ -921,8 +923,20 @@ def initialize_poses(
             say(f"principal point: {h_p.describe()} (cost {c_p / thr**2:.4g})")
         h_r, c_r = _refit(problem, scoring, seeds, h_p, thr, c_p, say)
         ranked.append((c_r / thr**2, hyp, h_r, ro))
+        if h_r.mapping == "fitted" and "sphere" in mappings:
+            # an odd polynomial cannot fold, but its principal point and axial scale are
+            # those of a folded lens too (whose principal point the search above, made
+            # without a refit, may miss): the folded lens there, if it explains more
+            # (one bounded evaluation: ordinary lenses stop after an image)
+            h_f = _folded_sphere(h_r.f_px, h_r.principal_point_px)
+            c_f = problem.cost(scoring, seeds, h_f, thr, 300, True, c_r)
+            if c_f < c_r:
+                h_f, c_f = _focal_zoom(problem, scoring, seeds, h_f, thr)
+            if c_f < c_r:
+                say(f"folded: {h_f.describe()} (cost {c_f / thr**2:.4g})")
+                ranked.append((c_f / thr**2, h_f, h_f, ro))
     ranked.sort(key=lambda x: x[0])
-    ranked += [(c, h, h, ro) for c, h, ro in zoomed[2:]]
+    ranked += [(c, h, h, ro) for c, h, ro in zoomed[2:] if all(h is not r[1] for r in ranked)]
 
     # 5. every image with the best hypothesis; fall through when most are rejected
     tried: list[str] = []
