@@ -380,10 +380,27 @@ def test_small_circle_is_found_as_a_disc():
     centre, radius = observed_disc(data["uv_px"], 2000, 2000)
     assert np.hypot(*(centre - [1100.0, 1000.0])) < 15.0
     assert abs(radius - 300.0 * 2 * np.sin(np.radians(62.5))) < 20.0
-    # a full-frame image (observations up to the sensor's edges) is not a disc
-    wide = Equidistant(f=500.0, cx=799.5, cy=599.5, max_angle_deg=89.0)
+    # a full-frame image (a circle beyond the sensor's corners) is not a disc ...
+    wide = Equidistant(f=700.0, cx=799.5, cy=599.5, max_angle_deg=89.0)
     data = simulate(4, "", 0.0, 0.0, 1600, 1200, 12, 900, lens=wide)
     assert observed_disc(data["uv_px"], 1600, 1200) is None
+    # ... while a circle (r = 777 px) that only the top and bottom edges crop is one
+    wide = Equidistant(f=500.0, cx=799.5, cy=599.5, max_angle_deg=89.0)
+    data = simulate(4, "", 0.0, 0.0, 1600, 1200, 12, 900, lens=wide)
+    centre, _ = observed_disc(data["uv_px"], 1600, 1200)
+    assert np.hypot(*(centre - [799.5, 599.5])) < 10.0, centre
+
+
+def test_circle_cropped_by_the_sensor_is_found_from_its_arcs():
+    """A 260 deg lens whose circle (r = 400 px) the bottom of a 1280x800 sensor crops by
+    80 px: the circle is fitted to the hull's arcs, not to the sensor's edge (without the
+    disc, only the image centre, 150 px off, was tried and every hypothesis failed)."""
+    lens = FieldOfView(f=400.0 / 0.8094, cx=511.5, cy=479.5, omega=2.2, max_angle_deg=130.0)
+    data = simulate(4, "", 0.0, 0.0, 1280, 800, 12, 900, lens=lens)
+    assert data["uv_px"][:, 1].max() > 790  # the sensor does crop the circle
+    centre, radius = observed_disc(data["uv_px"], 1280, 800)
+    assert np.hypot(*(centre - [511.5, 479.5])) < 10.0, centre
+    assert abs(radius - 400.0) < 20.0, radius
 
 
 @pytest.mark.slow  # 12 s: a full initialisation of a 3D-object set (CI runs it)

@@ -345,9 +345,10 @@ def observed_disc(uv_px: np.ndarray, width: int, height: int):
     observation inside a disc around its principal point. A circle is fitted (linear
     least squares) to the densified convex hull of the observations, twice: the second
     time without the observations beyond the 99.5th percentile of the distance to the
-    first centre (blunders outside the image circle). It counts as a disc when the hull
-    lies within 4 % of the radius of the circle (90 % of its length) and surrounds its
-    centre (no angular gap above 100 deg).
+    first centre (blunders outside the image circle). Hull points along the sensor's
+    edges are left out (a circle cropped by the sensor is fitted to its arcs). It counts
+    as a disc when the hull lies within 4 % of the radius of the circle (90 % of its
+    length) and surrounds its centre (no angular gap above 100 deg).
 
     Parameters
     ----------
@@ -373,7 +374,7 @@ def observed_disc(uv_px: np.ndarray, width: int, height: int):
         hull = cv2.convexHull(uv.astype(np.float32)).reshape(-1, 2).astype(float)
         if hull.shape[0] < 8:
             return None
-        fit = _hull_circle(hull, 0.01 * max(width, height))
+        fit = _hull_circle(hull, 0.01 * max(width, height), (width, height))
         if fit is None:
             return None
         dist = np.hypot(*(uv - fit[0]).T)
@@ -384,13 +385,23 @@ def observed_disc(uv_px: np.ndarray, width: int, height: int):
     return centre, float(np.percentile(np.hypot(*(uv - centre).T), 99.5))
 
 
-def _hull_circle(hull: np.ndarray, step_px: float):
-    """(centre (2,), is_disc) of the circle fitted to a convex hull (M, 2), or None."""
+def _hull_circle(hull: np.ndarray, step_px: float, size=None):
+    """(centre (2,), is_disc) of the circle fitted to a convex hull (M, 2), or None.
+
+    With ``size`` (width, height), the hull's points along the sensor's edges (within
+    ``step_px``) are left out: a circle the sensor crops is fitted to its arcs."""
     pts = []
     for a, b in zip(hull, np.roll(hull, -1, axis=0)):
         n = max(int(np.hypot(*(b - a)) / step_px), 1)
         pts.append(a + np.linspace(0, 1, n, endpoint=False)[:, None] * (b - a))
     pts = np.concatenate(pts)
+    if size is not None:
+        lo, hi = step_px - 0.5, np.asarray(size, float) - 0.5 - step_px
+        arc = np.all((pts > lo) & (pts < hi), axis=1)
+        if arc.sum() < 8:
+            return None
+        pts = pts[arc]
+        hull = pts
     A = np.column_stack([2 * pts, np.ones(len(pts))])
     sol = np.linalg.lstsq(A, (pts**2).sum(axis=1), rcond=None)[0]
     centre = sol[:2]
