@@ -62,7 +62,13 @@ from .graph import (
     pose_key,
     robust_sigma_px,
 )
-from .optimize import OptimizationResult, OptimizerOptions, make_ordering, optimize
+from .optimize import (
+    OptimizationResult,
+    OptimizerOptions,
+    make_ordering,
+    marginal_covariances,
+    optimize,
+)
 
 Pose = tuple[np.ndarray, np.ndarray]
 
@@ -519,17 +525,20 @@ def adjust_rig_jointly(
     inflate = max(1.0, variance_factor)
     cov_ext: dict[str, np.ndarray | None] = dict.fromkeys(ids[1:])
     int_sigma: dict[str, dict | None] = dict.fromkeys(ids)
-    try:
-        marginals = gtsam.Marginals(graph, final)
+    wanted = [intrinsics_key(c) for c in range(len(ids))]
+    if not fixed_extrinsics:
+        wanted += [extrinsics_key(c) for c in range(1, len(ids))]
+    marginal = marginal_covariances(graph, final, wanted)
+    if marginal is None:
+        notes.append("no covariance: the normal equations are singular")
+    else:
         for c, cid in enumerate(ids):
             names = problems[cid].intrinsics_names()
-            cov = inflate * marginals.marginalCovariance(intrinsics_key(c))
+            cov = inflate * marginal[intrinsics_key(c)]
             int_sigma[cid] = dict(zip(names, map(float, np.sqrt(np.diag(cov)))))
             if c > 0 and not fixed_extrinsics:
-                cov = inflate * np.asarray(marginals.marginalCovariance(extrinsics_key(c)))
+                cov = inflate * marginal[extrinsics_key(c)]
                 cov_ext[cid] = cam_from_rig_covariance(final.atPose3(extrinsics_key(c)), cov)
-    except RuntimeError as exc:  # indeterminate system
-        notes.append(f"no covariance: {' '.join(str(exc).split())[:200]}")
 
     # results, in the files' convention
     xyz = np.asarray(rig.target_xyz, float).copy()
