@@ -40,6 +40,17 @@ SUBSET = (
     "35-sphere-360-object3d-r0.4s-imp",
 )
 FOLDED = "35-sphere-360-object3d-r0.4s-imp"
+#: cases of the second case list (``--seed 1``), which nothing was tuned on, that failed
+#: there: a 260 deg lens whose circle the sensor crops (no disc was found, every
+#: hypothesis at the image centre failed), a 360 deg orthographic lens off the centre
+#: (the folded lens was only tried at the centre), a 300 deg lens on a 3D object
+#: (GTSAM's Marginals refused the ill-conditioned system: "singular", untrusted)
+SEED1 = {c.id: c for c in ZOO.build_cases(1)}
+SEED1_SUBSET = (
+    "59-fov-260-room-r0.5s-imp",
+    "35-sphere-360-object3d-r0.4s",
+    "26-stereographic-300-object3d-r0.4s-imp",
+)
 
 
 def test_the_zoo_has_every_family_scene_and_circle():
@@ -73,6 +84,15 @@ def test_zoo_case_default_calibration_matches_the_oracle(case_id, tmp_path):
     assert row["success"], row.get("distrust")
     assert row["ratio"] <= 1.15, row
     assert row["pp_error_px"] < 1.0
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("case_id", SEED1_SUBSET)
+def test_unseen_zoo_case_default_calibration_matches_the_oracle(case_id, tmp_path):
+    row = ZOO.run_case(SEED1[case_id], tmp_path)
+    assert "error" not in row, row.get("error")
+    assert row["success"], row.get("distrust")
+    assert row["ratio"] <= 1.15, row
 
 
 @pytest.mark.slow
