@@ -398,10 +398,10 @@ def _hull_circle(hull: np.ndarray, step_px: float, size=None):
     if size is not None:
         lo, hi = step_px - 0.5, np.asarray(size, float) - 0.5 - step_px
         arc = np.all((pts > lo) & (pts < hi), axis=1)
-        if arc.sum() < 8:
+        vertices = np.all((hull > lo) & (hull < hi), axis=1)
+        if arc.sum() < 8 or vertices.sum() < 3:
             return None
-        pts = pts[arc]
-        hull = pts
+        pts, hull = pts[arc], hull[vertices]  # a cropped part is an angular gap
     A = np.column_stack([2 * pts, np.ones(len(pts))])
     sol = np.linalg.lstsq(A, (pts**2).sum(axis=1), rcond=None)[0]
     centre = sol[:2]
