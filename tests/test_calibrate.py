@@ -130,6 +130,7 @@ def test_dogleg_matches_lm():
     assert abs(rep_dl.rmse_3d - rep_lm.rmse_3d) < 1e-5
 
 
+@pytest.mark.slow  # 7 s; the fast loop calibrates end to end in tests/test_determinism.py
 def test_noise_free_data_converges_and_is_trusted():
     """Perfect measurements (a renderer, a simulator): the noise estimate stops at its
     floor instead of whitening the projection's numerical noise (it stalled before)."""
