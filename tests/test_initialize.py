@@ -451,3 +451,32 @@ def test_unexplainable_data_fails_fast_with_the_hypotheses_tried():
     data["obs_target"] = rng.permutation(data["obs_target"])
     with pytest.raises(InitialisationError, match="no lens hypothesis explains"):
         initialize_poses(**_inputs(data), rng=np.random.default_rng(0))
+
+
+def test_pruned_costs_keep_the_best_hypotheses_exact():
+    """``_Problem.costs(keep=k)`` scores losers only until they pass the k-th best total:
+    the k lowest entries (per group) and their order equal the full evaluation's, and
+    every pruned entry is a partial sum above that bound (never below the true total)."""
+    from gtsam_sphere.estimation.initialize import _family, _Problem
+
+    data = simulate(3, "equidistant", 300.0, 180.0, 1000, 800, 6, 300)
+    problem = _Problem(data["uv_px"], data["obs_image"], data["obs_target"], data["target_xyz"], 6)
+    pp = np.array([499.5, 399.5])
+    hyps = [_family(m, f, pp) for m in ("equidistant", "equisolid") for f in (240, 280, 300, 330)]
+    groups = np.repeat([0, 1], 4)
+    images, seeds = [0, 1, 2, 3], [5, 6, 7, 8]
+    full = problem.costs(hyps, images, seeds, 6.0, 64, False)
+    for keep, grp in [(1, None), (3, None), (1, groups), (2, groups)]:
+        pruned = problem.costs(hyps, images, seeds, 6.0, 64, False, keep=keep, groups=grp)
+        labels = np.zeros(len(hyps), int) if grp is None else grp
+        for g in np.unique(labels):
+            members = np.flatnonzero(labels == g)
+            best = members[np.argsort(full[members], kind="stable")[:keep]]
+            np.testing.assert_array_equal(
+                members[np.argsort(pruned[members], kind="stable")[:keep]], best
+            )
+            np.testing.assert_allclose(pruned[best], full[best], rtol=1e-12)
+            rest = np.setdiff1d(members, best)
+            assert np.all(pruned[rest] <= full[rest] + 1e-9)
+            assert np.all(pruned[rest] > full[best].max())
+    assert np.argmin(full) == 2  # the true lens wins

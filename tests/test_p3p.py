@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gtsam_sphere.core.p3p import PoseResult, angular_errors_rad, p3p, ransac_pose
+from gtsam_sphere.core.p3p import PoseResult, angular_errors_rad, p3p, ransac_pose, ransac_poses
 
 
 def _random_rotation(rng: np.random.Generator) -> np.ndarray:
@@ -159,3 +159,45 @@ def test_angular_errors_batched_matches_single():
     both = angular_errors_rad(f, x, rots, ts)
     np.testing.assert_allclose(both[1], angular_errors_rad(f, x, rots[1], ts[1]))
     assert both.shape == (2, 10) and np.all((both >= 0) & (both <= np.pi))
+
+
+@pytest.mark.parametrize("refine", [False, True])
+def test_ransac_poses_of_many_problems_equal_each_alone(refine):
+    """The batched RANSAC draws each problem's samples from its own generator and scores
+    them in shared calls: every result is bit for bit that of ransac_pose alone, for
+    problems of different sizes, outlier rates, thresholds and a too-small one."""
+    rng = np.random.default_rng(8)
+    problems = []
+    for n, frac, thr in [(40, 0.0, 1e-3), (120, 0.3, 2e-3), (3, 0.0, 1e-3), (75, 0.6, 5e-3)]:
+        _, _, f, x, _ = _ransac_scene(rng, n, frac, noise_rad=2e-4 if frac else 0.0)
+        f[n // 2] = np.nan  # a non-finite row
+        problems.append((f, x, thr))
+    seeds = [11, 12, 13, 14]
+    alone = [
+        ransac_pose(f, x, thr, np.random.default_rng(s), 300, refine=refine)
+        for (f, x, thr), s in zip(problems, seeds)
+    ]
+    together = ransac_poses(
+        [f for f, _, _ in problems],
+        [x for _, x, _ in problems],
+        [thr for _, _, thr in problems],
+        [np.random.default_rng(s) for s in seeds],
+        300,
+        refine=refine,
+    )
+    assert len(together) == len(problems)
+    for a, b in zip(alone, together):
+        assert a.success == b.success and a.reason == b.reason
+        np.testing.assert_array_equal(a.R, b.R)
+        np.testing.assert_array_equal(a.t, b.t)
+        np.testing.assert_array_equal(a.inlier_mask, b.inlier_mask)
+    assert not together[2].success and "only 2 usable observations" in together[2].reason
+    assert together[1].success and together[3].success
+
+
+def test_ransac_poses_rejects_mismatched_lists():
+    f = np.tile([0.0, 0.0, 1.0], (5, 1))
+    with pytest.raises(ValueError, match="one entry per problem"):
+        ransac_poses([f, f], [f], [1e-3, 1e-3], [np.random.default_rng(0)] * 2)
+    with pytest.raises(ValueError, match=r"shape \(N, 3\)"):
+        ransac_poses([f], [f[:4]], [1e-3], [np.random.default_rng(0)])

@@ -38,7 +38,7 @@ from .least_squares import Damping, levenberg_marquardt, ridge_scaling
 from .lie import nearest_rotation, skew, so3_exp
 from .robust import Loss, robust_weight
 
-__all__ = ["PoseResult", "angular_errors_rad", "p3p", "ransac_pose"]
+__all__ = ["PoseResult", "angular_errors_rad", "p3p", "ransac_pose", "ransac_poses"]
 
 _DEGENERATE_SIN = 1e-9  # |f_i x f_j| below this: duplicate bearings
 _DEGENERATE_AREA = 1e-9  # triangle area / longest side^2 below this: collinear points
@@ -116,8 +116,8 @@ def _p3p_batch(
 
     Returns
     -------
-    R : (K, 4, 3, 3) cam_from_world rotations (garbage where not valid).
-    t : (K, 4, 3) cam_from_world translations, metres.
+    R : (K, 4, 3, 3) cam_from_world rotations (the identity where not valid).
+    t : (K, 4, 3) cam_from_world translations, metres (0 where not valid).
     valid : (K, 4) bool, which of the (up to 4) solution slots are real solutions.
     """
     bearings = np.asarray(bearings, dtype=float)
@@ -204,12 +204,12 @@ def _p3p_batch(
             same = np.max(np.abs(s[:, j] - s[:, i]), axis=-1) < 1e-7
             valid[:, j] &= ~(same & valid[:, i])
 
-    s_m = np.where(valid[..., None], s, 1.0) * np.sqrt(scale2)[:, None, None]
-    p_cam = s_m[..., None] * bearings[:, None, :, :]  # (K, 4, 3, 3)
-    pw = np.broadcast_to(points[:, None], p_cam.shape)
-    pw = np.where(valid[..., None, None], pw, np.eye(3))
-    p_cam = np.where(valid[..., None, None], p_cam, np.eye(3))
-    rot, t = fit_rigid(pw, p_cam)
+    # the rigid fit of the real solutions only (the others: identity placeholders)
+    kk, jj = np.nonzero(valid)
+    s_m = s[kk, jj] * np.sqrt(scale2)[kk, None]
+    rot = np.broadcast_to(np.eye(3), (k, 4, 3, 3)).copy()
+    t = np.zeros((k, 4, 3))
+    rot[kk, jj], t[kk, jj] = fit_rigid(points[kk], s_m[..., None] * bearings[kk])
     return rot, t, valid
 
 
@@ -316,14 +316,6 @@ def angular_errors_rad(
     cross = np.linalg.norm(_cross(bearings_cam, p), axis=-1)
     dot = np.einsum("...ni,ni->...n", p, bearings_cam)
     return np.arctan2(cross, dot)
-
-
-def _cos_errors(bearings: np.ndarray, points: np.ndarray, R: np.ndarray, t: np.ndarray):
-    """Cosine of the angular error for H hypotheses at once: (H, N)."""
-    p = np.einsum("hij,nj->hni", R, points) + t[:, None, :]
-    nrm = np.linalg.norm(p, axis=-1)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.einsum("hni,ni->hn", p, bearings) / nrm
 
 
 def _sample_triplets(rng: np.random.Generator, n: int, k: int) -> np.ndarray:
@@ -437,64 +429,228 @@ def ransac_pose(
     PoseResult
         cam_from_world ``R, t``; ``inlier_mask`` (N,); ``median_error_rad`` of the inliers.
     """
-    f = np.asarray(bearings_cam, dtype=float)
-    x = np.asarray(points_world, dtype=float)
-    n = f.shape[0]
-    finite = np.all(np.isfinite(f), axis=1) & np.all(np.isfinite(x), axis=1)
-    idx_ok = np.flatnonzero(finite)
-    nan_pose = (np.full((3, 3), np.nan), np.full(3, np.nan))
+    return ransac_poses(
+        [bearings_cam],
+        [points_world],
+        [threshold_rad],
+        [rng],
+        max_iterations,
+        confidence,
+        min_inliers=min_inliers,
+        refine=refine,
+        batch_size=batch_size,
+    )[0]
+
+
+class _RansacState:
+    """One problem of :func:`ransac_poses`: its usable rows, draws and best hypothesis."""
+
+    def __init__(self, bearings, points, threshold_rad, rng, max_iterations):
+        f = np.asarray(bearings, dtype=float).reshape(-1, 3)
+        x = np.asarray(points, dtype=float).reshape(-1, 3)
+        if f.shape != x.shape:
+            raise ValueError(
+                f"bearings_cam and points_world must both have shape (N, 3), got {f.shape} "
+                f"and {x.shape}"
+            )
+        self.n = f.shape[0]
+        finite = np.all(np.isfinite(f), axis=1) & np.all(np.isfinite(x), axis=1)
+        self.idx_ok = np.flatnonzero(finite)
+        self.fo, self.xo = f[self.idx_ok], x[self.idx_ok]
+        self.m = self.idx_ok.size
+        self.threshold_rad = float(threshold_rad)
+        self.rng = rng
+        self.max_iterations = int(max_iterations)
+        self.best_cost = np.inf
+        self.best = None
+        self.needed = self.max_iterations
+        self.drawn = 0
+
+    @property
+    def active(self) -> bool:
+        return self.drawn < min(self.needed, self.max_iterations)
+
+
+#: (hypotheses x observations) of the problems scored in one vectorised call
+_SCORE_BUDGET = 2_000_000
+
+
+def ransac_poses(
+    bearings_cam: list,
+    points_world: list,
+    thresholds_rad,
+    rngs: list,
+    max_iterations: int = 1000,
+    confidence: float = 0.999,
+    *,
+    min_inliers: int = 4,
+    refine: bool = True,
+    batch_size: int = 64,
+) -> list[PoseResult]:
+    """:func:`ransac_pose` of many independent problems at once.
+
+    Each problem draws its minimal samples from its own generator, in the same order and
+    with the same adaptive stopping rule as alone, so its result is that of
+    :func:`ransac_pose` with the same arguments; the P3P solutions and the MSAC scores of
+    every problem still drawing are computed in shared vectorised calls (the lens
+    initialisation poses thousands of small images under hundreds of hypotheses).
+
+    Parameters
+    ----------
+    bearings_cam : list of P arrays, each (N_p, 3)
+        Unit bearings per problem, camera frame.
+    points_world : list of P arrays, each (N_p, 3)
+        Matching world points, metres.
+    thresholds_rad : (P,) array-like
+        Angular inlier threshold per problem, radians.
+    rngs : list of P numpy.random.Generator
+        One source of minimal samples per problem.
+    max_iterations, confidence, min_inliers, refine, batch_size
+        As in :func:`ransac_pose`, shared by every problem.
+
+    Returns
+    -------
+    list of P PoseResult
+    """
+    thresholds = np.broadcast_to(np.asarray(thresholds_rad, dtype=float), (len(bearings_cam),))
+    if not (len(points_world) == len(rngs) == len(bearings_cam)):
+        raise ValueError(
+            f"bearings_cam, points_world and rngs must have one entry per problem, got "
+            f"{len(bearings_cam)}, {len(points_world)} and {len(rngs)}"
+        )
     min_inliers = max(int(min_inliers), 4)
-    if idx_ok.size < max(4, min_inliers):
-        return PoseResult(
-            *nan_pose,
-            np.zeros(n, bool),
-            0,
-            float("nan"),
-            False,
-            f"only {idx_ok.size} usable observations (need at least {max(4, min_inliers)})",
-        )
-    fo, xo = f[idx_ok], x[idx_ok]
-    m = idx_ok.size
-    cos_thr = np.cos(threshold_rad)
-    thr2 = threshold_rad**2
+    states = [
+        _RansacState(f, x, thr, rng, max_iterations)
+        for f, x, thr, rng in zip(bearings_cam, points_world, thresholds, rngs)
+    ]
+    results: list[PoseResult | None] = [None] * len(states)
+    nan_pose = (np.full((3, 3), np.nan), np.full(3, np.nan))
+    for p, s in enumerate(states):
+        if s.m < max(4, min_inliers):
+            s.needed = 0  # never drawn
+            results[p] = PoseResult(
+                *nan_pose,
+                np.zeros(s.n, bool),
+                0,
+                float("nan"),
+                False,
+                f"only {s.m} usable observations (need at least {max(4, min_inliers)})",
+            )
+    while True:
+        active = [s for s in states if s.active]
+        if not active:
+            break
+        group: list[_RansacState] = []
+        load = 0
+        for s in active:  # groups of problems scored together, within the memory budget
+            group.append(s)
+            load += 4 * min(batch_size, s.max_iterations - s.drawn) * s.m
+            if load >= _SCORE_BUDGET:
+                _ransac_round(group, batch_size, confidence)
+                group, load = [], 0
+        if group:
+            _ransac_round(group, batch_size, confidence)
 
-    best_cost = np.inf
-    best = None
-    best_inl = 0
-    needed = max_iterations
-    drawn = 0
-    while drawn < min(needed, max_iterations):
-        k = min(batch_size, max_iterations - drawn)
-        tri = _sample_triplets(rng, m, k)
-        drawn += k
-        rot, t, valid = _p3p_batch(fo[tri], xo[tri])
-        if not np.any(valid):
+    for p, s in enumerate(states):
+        if results[p] is None:
+            results[p] = _ransac_finish(s, min_inliers, refine)
+    return results
+
+
+def _ransac_round(group: list[_RansacState], batch_size: int, confidence: float) -> None:
+    """One batch of minimal samples for every problem of ``group``: P3P, MSAC scores and
+    each problem's best hypothesis, needed sample count updated (as :func:`ransac_pose`)."""
+    tris, sizes = [], []
+    for s in group:
+        k = min(batch_size, s.max_iterations - s.drawn)
+        tris.append(_sample_triplets(s.rng, s.m, k))
+        s.drawn += k
+        sizes.append(k)
+    f = np.concatenate([s.fo[tri] for s, tri in zip(group, tris)])
+    x = np.concatenate([s.xo[tri] for s, tri in zip(group, tris)])
+    rot, t, valid = _p3p_batch(f, x)
+    n_hyp = [int(valid[o : o + k].sum()) for o, k in zip(np.cumsum([0, *sizes]), sizes)]
+    h_max, n_max = max(n_hyp), max(s.m for s in group)
+    if h_max == 0:
+        return
+    # padded (P, H, ...) hypotheses and (P, N, 3) observations; padding scores nothing
+    n_p = len(group)
+    R_pad = np.broadcast_to(np.eye(3), (n_p, h_max, 3, 3)).copy()
+    t_pad = np.zeros((n_p, h_max, 3))
+    f_pad = np.zeros((n_p, n_max, 3))
+    x_pad = np.zeros((n_p, n_max, 3))
+    obs = np.zeros((n_p, n_max), bool)
+    hyp = np.zeros((n_p, h_max), bool)
+    o = 0
+    for p, (s, k) in enumerate(zip(group, sizes)):
+        v = valid[o : o + k]
+        R_pad[p, : n_hyp[p]] = rot[o : o + k][v]
+        t_pad[p, : n_hyp[p]] = t[o : o + k][v]
+        f_pad[p, : s.m], x_pad[p, : s.m] = s.fo, s.xo
+        obs[p, : s.m] = True
+        hyp[p, : n_hyp[p]] = True
+        o += k
+    cosang = _cosines(R_pad, t_pad, f_pad, x_pad, obs)
+    ang = np.arccos(np.clip(np.nan_to_num(cosang, nan=-1.0), -1.0, 1.0))
+    thr = np.array([s.threshold_rad for s in group])
+    capped = np.minimum(ang * ang, (thr * thr)[:, None, None])
+    cost = np.where(obs[:, None, :], capped, 0.0).sum(axis=2)  # MSAC, (P, H)
+    cost = np.where(hyp, cost, np.inf)
+    for p, s in enumerate(group):
+        if n_hyp[p] == 0:
             continue
-        rot, t = rot[valid], t[valid]
-        cosang = _cos_errors(fo, xo, rot, t)
-        ang = np.arccos(np.clip(np.nan_to_num(cosang, nan=-1.0), -1.0, 1.0))
-        cost = np.minimum(ang * ang, thr2).sum(axis=1)  # MSAC
-        j = int(np.argmin(cost))
-        if cost[j] < best_cost:
-            best_cost = float(cost[j])
-            best = (rot[j], t[j])
-            best_inl = int(np.sum(cosang[j] >= cos_thr))
-            w = best_inl / m
+        j = int(np.argmin(cost[p]))
+        if cost[p, j] < s.best_cost:
+            s.best_cost = float(cost[p, j])
+            s.best = (R_pad[p, j].copy(), t_pad[p, j].copy())
+            w = int(np.sum(cosang[p, j, : s.m] >= np.cos(s.threshold_rad))) / s.m
             if w >= 1.0:
-                needed = 0
+                s.needed = 0
             elif w > 0:
-                needed = int(np.ceil(np.log(1 - confidence) / np.log1p(-(w**3))))
-    if best is None:
+                s.needed = int(np.ceil(np.log(1 - confidence) / np.log1p(-(w**3))))
+
+
+def _cosines(R, t, f, x, obs):
+    """Cosine of the angle between bearings and the rays to the posed points, (P, H, N).
+
+    ``R`` (P, H, 3, 3), ``t`` (P, H, 3) cam_from_world hypotheses; ``f`` (P, N, 3)
+    bearings, ``x`` (P, N, 3) world points, ``obs`` (P, N) the real (unpadded) rows.
+    Written as two batched matrix products: with ``p = R x + t``,
+    ``f . p = vec(f x^T) . vec(R) + f . t`` and ``|p|^2 = |x|^2 + 2 (R^T t) . x + |t|^2``
+    (``|R x| = |x|``), the points taken about their centroid (so the expansion of
+    ``|p|^2`` does not cancel for maps far from the origin). NaN where ``p = 0``.
+    """
+    n_obs = np.maximum(obs.sum(axis=1), 1)
+    centroid = (x * obs[..., None]).sum(axis=1) / n_obs[:, None]  # (P, 3)
+    xc = np.where(obs[..., None], x - centroid[:, None, :], 0.0)
+    tc = t + np.einsum("phij,pj->phi", R, centroid)
+    fx = (f[:, :, :, None] * xc[:, :, None, :]).reshape(f.shape[0], f.shape[1], 9)
+    lhs = np.concatenate([R.reshape(*R.shape[:2], 9), tc], axis=2)  # (P, H, 12)
+    rhs = np.concatenate([fx, f], axis=2).transpose(0, 2, 1)  # (P, 12, N)
+    dot = lhs @ rhs
+    rt_t = np.einsum("phji,phj->phi", R, tc)  # R^T t
+    norm2 = (xc * xc).sum(axis=2)[:, None, :] + 2.0 * (rt_t @ xc.transpose(0, 2, 1))
+    norm2 += (tc * tc).sum(axis=2)[:, :, None]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return dot / np.sqrt(np.maximum(norm2, 0.0))
+
+
+def _ransac_finish(s: _RansacState, min_inliers: int, refine: bool) -> PoseResult:
+    """The PoseResult of one problem: its best hypothesis, refined (LM) when asked."""
+    n, threshold_rad = s.n, s.threshold_rad
+    if s.best is None:
         return PoseResult(
-            *nan_pose,
+            np.full((3, 3), np.nan),
+            np.full(3, np.nan),
             np.zeros(n, bool),
             0,
             float("nan"),
             False,
-            f"no valid P3P solution from {drawn} minimal samples of {m} observations",
+            f"no valid P3P solution from {s.drawn} minimal samples of {s.m} observations",
         )
-
-    R_b, t_b = best
+    fo, xo = s.fo, s.xo
+    thr2 = threshold_rad**2
+    R_b, t_b = s.best
 
     def score(R_, t_):
         ang_ = angular_errors_rad(fo, xo, R_, t_)
@@ -517,7 +673,7 @@ def ransac_pose(
                 break
 
     mask = np.zeros(n, bool)
-    mask[idx_ok] = ang < threshold_rad
+    mask[s.idx_ok] = ang < threshold_rad
     n_inl = int(mask.sum())
     med = float(np.median(ang[ang < threshold_rad])) if n_inl else float("nan")
     success = n_inl >= min_inliers

@@ -65,7 +65,7 @@ import numpy as np
 
 from ..core.camera import radial_warp
 from ..core.errors import InitialisationError
-from ..core.p3p import ransac_pose
+from ..core.p3p import ransac_poses
 
 __all__ = [
     "MAPPINGS",
@@ -491,37 +491,90 @@ class _Problem:
 
         Uses every observation of the image when ``all_observations`` is set, else the
         scoring subset (errors are then of that subset)."""
-        idx = (self.obs_of_image if self.all_observations else self.scored_of_image)[image]
-        rays = hyp.candidate_rays(self.uv[idx])
-        points = self.points[idx]
-        if rays.shape[0] != idx.size:  # a folded lens: both rays of every pixel compete
-            points = np.concatenate([points, points])
-        res = ransac_pose(
+        return self.runs([(image, hyp, seed)], thr_px, max_iterations, min_inliers, refine)[0]
+
+    def runs(self, jobs, thr_px, max_iterations, min_inliers, refine):
+        """:meth:`run` of many ``(image, hypothesis, seed)`` jobs in shared vectorised
+        RANSAC calls (:func:`~gtsam_sphere.core.p3p.ransac_poses`); a list of
+        (PoseResult, MSAC cost px^2, errors px), each as :meth:`run` alone gives it."""
+        rows = self.obs_of_image if self.all_observations else self.scored_of_image
+        rays, points, thresholds, rngs = [], [], [], []
+        for image, hyp, seed in jobs:
+            idx = rows[image]
+            r = hyp.candidate_rays(self.uv[idx])
+            x = self.points[idx]
+            if r.shape[0] != idx.size:  # a folded lens: both rays of every pixel compete
+                x = np.concatenate([x, x])
+            rays.append(r)
+            points.append(x)
+            thresholds.append(_ransac_threshold_rad(hyp, thr_px))
+            rngs.append(np.random.default_rng(seed))
+        results = ransac_poses(
             rays,
             points,
-            _ransac_threshold_rad(hyp, thr_px),
-            np.random.default_rng(seed),
+            thresholds,
+            rngs,
             max_iterations=max_iterations,
             min_inliers=min_inliers,
             refine=refine,
         )
-        err = self.errors_px(idx, hyp, res.R, res.t)
-        return res, float(np.minimum(err * err, thr_px * thr_px).sum()), err
+        out = []
+        for (image, hyp, _), res in zip(jobs, results):
+            err = self.errors_px(rows[image], hyp, res.R, res.t)
+            out.append((res, float(np.minimum(err * err, thr_px * thr_px).sum()), err))
+        return out
 
-    def cost(self, images, seeds, hyp, thr_px, max_iterations, refine, bound=np.inf):
-        """Total pixel MSAC cost of a hypothesis over ``images`` (px^2).
+    def costs(self, hyps, images, seeds, thr_px, max_iterations, refine, keep=None, groups=None):
+        """Total pixel MSAC cost (px^2) of each hypothesis over ``images``: (H,).
 
-        The per-image costs are non-negative and each image's RANSAC has its own seed,
-        so once the running sum exceeds ``bound`` (the best competitor's cost) the
-        hypothesis cannot win: the partial sum, above ``bound``, is returned without
-        posing the remaining images. Comparisons against ``bound`` come out as with the
-        full sum."""
-        total = 0.0
-        for i, s in zip(images, seeds, strict=True):
-            total += self.run(i, hyp, thr_px, s, max_iterations, 4, refine)[1]
-            if total > bound:
+        Every (hypothesis, image) pair is posed in shared vectorised RANSAC calls; each
+        image has its own seed, the same for every hypothesis (common random numbers).
+
+        With ``keep = k`` only the ``k`` lowest costs (of each of the ``groups``, labels
+        (H,), when given) are needed exactly: every hypothesis is scored on the first
+        image, the ``k`` best of each group on every image, and the others image by
+        image while their running sum stays at or below their group's ``k``-th lowest
+        total (per-image costs are non-negative, so a hypothesis past it cannot be among
+        the ``k`` best). Their entries are then partial sums above that bound: the ``k``
+        lowest entries of each group, and their order, are those of the full sums.
+        """
+        n_h, images, seeds = len(hyps), list(images), list(seeds)
+        if keep is None or len(images) <= 1:
+            jobs = [(i, h, s) for h in hyps for i, s in zip(images, seeds, strict=True)]
+            per_job = [c for _, c, _ in self.runs(jobs, thr_px, max_iterations, 4, refine)]
+            return np.asarray(per_job, float).reshape(n_h, len(images)).sum(axis=1)
+        groups = np.zeros(n_h, int) if groups is None else np.asarray(groups)
+        first = self.runs(
+            [(images[0], h, seeds[0]) for h in hyps], thr_px, max_iterations, 4, refine
+        )
+        total = np.asarray([c for _, c, _ in first])
+        lead = np.concatenate(
+            [g[np.argsort(total[g], kind="stable")[:keep]] for g in _members(groups)]
+        )
+        total[lead] += self.costs(
+            [hyps[k] for k in lead], images[1:], seeds[1:], thr_px, max_iterations, refine
+        )
+        bound = np.empty(n_h)
+        for g in _members(groups):
+            bound[g] = total[np.intersect1d(g, lead)].max()
+        alive = np.setdiff1d(np.flatnonzero(total <= bound), lead)
+        for i, s in zip(images[1:], seeds[1:], strict=True):
+            if alive.size == 0:
                 break
+            done = self.runs([(i, hyps[k], s) for k in alive], thr_px, max_iterations, 4, refine)
+            total[alive] += [c for _, c, _ in done]
+            alive = alive[total[alive] <= bound[alive]]
         return total
+
+    def cost(self, images, seeds, hyp, thr_px, max_iterations, refine):
+        """Total pixel MSAC cost of one hypothesis over ``images`` (px^2)."""
+        return float(self.costs([hyp], images, seeds, thr_px, max_iterations, refine)[0])
+
+
+def _members(groups: np.ndarray) -> list[np.ndarray]:
+    """Indices of each distinct label of ``groups`` (H,), in order of first appearance."""
+    _, first, inverse = np.unique(groups, return_index=True, return_inverse=True)
+    return [np.flatnonzero(inverse == g) for g in np.argsort(first)]
 
 
 def _ransac_threshold_rad(hyp: LensHypothesis, thr_px: float) -> float:
@@ -557,12 +610,9 @@ def _focal_scan(problem, images, seeds, hyp, thr_px):
     apart), no pose refinement. Returns ``(hypothesis, cost)`` of the best value."""
     half = np.log(_GRID_RATIO)
     xs = np.log(hyp.f_px) + np.linspace(-half, half, 13)
-    cs: list[float] = []
-    for x in xs:
-        bound = min(cs, default=np.inf)
-        cs.append(
-            problem.cost(images, seeds, replace(hyp, f_px=np.exp(x)), thr_px, 64, False, bound)
-        )
+    cs = problem.costs(
+        [replace(hyp, f_px=np.exp(x)) for x in xs], images, seeds, thr_px, 64, False, keep=1
+    )
     j = int(np.argmin(cs))
     return replace(hyp, f_px=np.exp(xs[j])), float(cs[j])
 
@@ -572,7 +622,9 @@ def _focal_zoom(problem, images, seeds, hyp, thr_px):
     step in ``log f``. Returns ``(hypothesis, cost)``."""
     h = np.log(_GRID_RATIO) / 24.0
     x2 = np.log(hyp.f_px) + h * np.arange(-2, 3)
-    c2 = [problem.cost(images, seeds, replace(hyp, f_px=np.exp(x)), thr_px, 300, True) for x in x2]
+    c2 = list(
+        problem.costs([replace(hyp, f_px=np.exp(x)) for x in x2], images, seeds, thr_px, 300, True)
+    )
     j = int(np.argmin(c2))
     xs, cs = list(x2), list(c2)
     if 0 < j < len(c2) - 1:
@@ -603,25 +655,19 @@ def _pp_search(problem, images, seeds, hyp, thr_px, size, quick_images, quick_se
     steps = np.arange(-4, 5) * 0.03
     offsets = [size * [dx, dy] for dx in steps for dy in steps]
     grid = [replace(hyp, principal_point_px=centre + o) for o in offsets]
-    quick: list[float] = []
-    for h in grid:  # only the three best matter: the third best so far bounds the rest
-        bound = sorted(quick)[2] if len(quick) >= 3 else np.inf
-        quick.append(problem.cost(quick_images, quick_seeds, h, thr_px, 64, False, bound))
+    quick = problem.costs(grid, quick_images, quick_seeds, thr_px, 64, False, keep=3)
     shortlist = [grid[k] for k in np.argsort(quick, kind="stable")[:3]]
-    scored: list[tuple[float, int, LensHypothesis]] = []
-    for k, h in enumerate([hyp, *shortlist]):
-        bound = min((c for c, _, _ in scored), default=np.inf)
-        scored.append((problem.cost(images, seeds, h, thr_px, 300, True, bound), k, h))
-    best_cost, _, best = min(scored, key=lambda x: (x[0], x[1]))
+    candidates = [hyp, *shortlist]
+    scored = problem.costs(candidates, images, seeds, thr_px, 300, True, keep=1)
+    k = int(np.argmin(scored))  # the first of equal costs
+    best, best_cost = candidates[k], float(scored[k])
     centre = best.principal_point_px
-    for dx in (-0.01, 0.0, 0.01):
-        for dy in (-0.01, 0.0, 0.01):
-            if dx == 0 and dy == 0:
-                continue
-            cand = replace(best, principal_point_px=centre + size * [dx, dy])
-            c = problem.cost(images, seeds, cand, thr_px, 300, True, best_cost)
-            if c < best_cost:
-                best, best_cost = cand, c
+    steps = [(dx, dy) for dx in (-0.01, 0.0, 0.01) for dy in (-0.01, 0.0, 0.01) if dx or dy]
+    around = [replace(best, principal_point_px=centre + size * [dx, dy]) for dx, dy in steps]
+    c = problem.costs(around, images, seeds, thr_px, 300, True, keep=1)
+    k = int(np.argmin(c))
+    if c[k] < best_cost:
+        best, best_cost = around[k], float(c[k])
     return best, best_cost
 
 
@@ -888,11 +934,18 @@ def initialize_poses(
         families = [[_family(m, f, pp) for f in _focal_grid(m, ro)] for m in mappings]
         if "sphere" in mappings:  # an orthographic lens past 180 deg: its image ends at r = f
             families.append([_folded_sphere(f, pp) for f in ro * np.array([1.0, _GRID_RATIO])])
-        for grid in families:
-            costs: list[float] = []
-            for hyp in grid:  # the best so far bounds the rest (argmin unchanged)
-                bound = min(costs, default=np.inf)
-                costs.append(problem.cost(coarse_images, coarse_seeds, hyp, thr, 64, False, bound))
+        every = problem.costs(
+            [h for grid in families for h in grid],
+            coarse_images,
+            coarse_seeds,
+            thr,
+            64,
+            False,
+            keep=1,
+            groups=np.repeat(np.arange(len(families)), [len(grid) for grid in families]),
+        )
+        ends = np.cumsum([len(grid) for grid in families])
+        for grid, costs in zip(families, np.split(every, ends[:-1]), strict=True):
             j = int(np.argmin(costs))
             coarse.append((costs[j] / thr**2, grid[j], ro))
             name = "sphere-folded" if grid[j].folded else grid[j].mapping
@@ -938,9 +991,8 @@ def initialize_poses(
             # an odd polynomial cannot fold, but its principal point and axial scale are
             # those of a folded lens too (whose principal point the search above, made
             # without a refit, may miss): the folded lens there, if it explains more
-            # (one bounded evaluation: ordinary lenses stop after an image)
             h_f = _folded_sphere(h_r.f_px, h_r.principal_point_px)
-            c_f = problem.cost(scoring, seeds, h_f, thr, 300, True, c_r)
+            c_f = problem.cost(scoring, seeds, h_f, thr, 300, True)
             if c_f < c_r:
                 h_f, c_f = _focal_zoom(problem, scoring, seeds, h_f, thr)
             if c_f < c_r:
@@ -1003,8 +1055,8 @@ def _pose_all(problem, images, lens, thr, seeds, min_inliers):
     inlier_mask = np.zeros(problem.uv.shape[0], bool)
     fails: dict[int, str] = {}
     problem.all_observations = True
-    for i in images:
-        res, _, err = problem.run(i, lens, thr, seeds[i], 1000, min_inliers, True)
+    posed = problem.runs([(i, lens, seeds[i]) for i in images], thr, 1000, min_inliers, True)
+    for i, (res, _, err) in zip(images, posed, strict=True):
         inl = err < thr
         if res.success and inl.sum() >= min_inliers:
             ok[i] = True
@@ -1028,8 +1080,8 @@ def _refit(problem, images, seeds, hyp, thr, cost, say):
         rot = np.full((n, 3, 3), np.nan)
         trans = np.full((n, 3), np.nan)
         mask = np.zeros(problem.uv.shape[0], bool)
-        for i, s in zip(images, seeds, strict=True):
-            res, _, err = problem.run(i, best, thr, s, 300, 4, True)
+        posed = problem.runs(list(zip(images, [best] * len(images), seeds)), thr, 300, 4, True)
+        for i, (res, _, err) in zip(images, posed, strict=True):
             if np.all(np.isfinite(res.R)):
                 rot[i], trans[i] = res.R, res.t
                 mask[problem.scored_of_image[i]] = err < 3.0 * thr
@@ -1037,7 +1089,7 @@ def _refit(problem, images, seeds, hyp, thr, cost, say):
         if refined is None:
             break
         new = refined[0]
-        c_new = problem.cost(images, seeds, new, thr, 300, True, 0.98 * best_cost)
+        c_new = problem.cost(images, seeds, new, thr, 300, True)
         if c_new >= 0.98 * best_cost:
             break
         best, best_cost = new, c_new
