@@ -4,7 +4,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from gtsam_sphere.core.lie import skew, so3_exp, so3_exp_batch, so3_log, so3_log_batch
+from gtsam_sphere.core.lie import (
+    skew,
+    so3_exp,
+    so3_exp_batch,
+    so3_left_jacobian_batch,
+    so3_log,
+    so3_log_batch,
+)
 
 
 def _vectors(n=500, seed=0):
@@ -51,3 +58,20 @@ def test_nearest_rotation_and_rotation_angle():
     assert np.allclose(rotation_angle(R), np.linalg.norm(w, axis=1), atol=1e-12)
     # a reflection's nearest rotation has det +1
     assert np.isclose(np.linalg.det(nearest_rotation(np.diag([1.0, 1.0, -1.0]))), 1.0)
+
+
+def test_left_jacobian_against_central_differences():
+    """d(exp(w) y)/dw = -[exp(w) y]x J_l(w), at angles from 0 to near pi (both branches
+    of the closed form and its series)."""
+    rng = np.random.default_rng(3)
+    y = rng.normal(size=3)
+    for th in (0.0, 1e-7, 5e-4, 2e-3, 0.3, 1.5, 3.0):
+        axis = rng.normal(size=3)
+        w = th * axis / np.linalg.norm(axis)
+        jl = so3_left_jacobian_batch(w[None])[0]
+        analytic = -skew(so3_exp(w) @ y) @ jl
+        h = 1e-6
+        numeric = np.column_stack(
+            [(so3_exp(w + h * e) @ y - so3_exp(w - h * e) @ y) / (2 * h) for e in np.eye(3)]
+        )
+        np.testing.assert_allclose(analytic, numeric, atol=1e-8)

@@ -19,6 +19,7 @@ __all__ = [
     "skew",
     "so3_exp",
     "so3_exp_batch",
+    "so3_left_jacobian_batch",
     "so3_log",
     "so3_log_batch",
 ]
@@ -89,6 +90,32 @@ def so3_exp_batch(w: np.ndarray) -> np.ndarray:
     safe = np.where(small, 1.0, th)
     a = np.where(small, 1.0, np.sin(safe) / safe)
     b = np.where(small, 0.0, (1.0 - np.cos(safe)) / safe**2)
+    return np.eye(3) + a[..., None, None] * k + b[..., None, None] * (k @ k)
+
+
+def so3_left_jacobian_batch(w: np.ndarray) -> np.ndarray:
+    """Left Jacobians of SO(3), vectorised: ``d/dw exp(w) = exp(J_l(w) dw) exp(w)``.
+
+    ``J_l(w) = I + (1 - cos th) / th^2 [w]x + (th - sin th) / th^3 [w]x^2``, so for a
+    point ``y``, ``d(exp(w) y)/dw = -[exp(w) y]x J_l(w)``.
+
+    Parameters
+    ----------
+    w : array_like, shape (N, 3)
+        Rotation vectors, radians.
+
+    Returns
+    -------
+    ndarray, shape (N, 3, 3)
+    """
+    w = np.asarray(w, float)
+    th = np.linalg.norm(w, axis=-1)
+    k = skew(w)
+    small = th < 1e-3  # Taylor series there: the closed forms cancel (error ~eps / th^2)
+    safe = np.where(small, 1.0, th)
+    t2 = th * th
+    a = np.where(small, 0.5 - t2 / 24.0, (1.0 - np.cos(safe)) / safe**2)
+    b = np.where(small, 1.0 / 6.0 - t2 / 120.0, (safe - np.sin(safe)) / safe**3)
     return np.eye(3) + a[..., None, None] * k + b[..., None, None] * (k @ k)
 
 

@@ -712,8 +712,9 @@ def _joint_refine(problem, images, hyp, rot, trans, mask, thr_px):
     Returns ``(hypothesis, rot, trans)`` or None when the fit is unusable.
     """
     from scipy.optimize import least_squares
+    from scipy.sparse import csr_matrix
 
-    from ..core.lie import nearest_rotation, so3_exp
+    from ..core.lie import nearest_rotation, skew, so3_exp_batch, so3_left_jacobian_batch
 
     posed = [i for i in images if np.all(np.isfinite(rot[i]))]
     rows = [problem.obs_of_image[i][mask[problem.obs_of_image[i]]] for i in posed]
@@ -741,29 +742,72 @@ def _joint_refine(problem, images, hyp, rot, trans, mask, thr_px):
 
     def poses(x):
         d = x[2 + _N_POLY :].reshape(n_cam, 6)
-        return np.stack([so3_exp(w) @ r for w, r in zip(d[:, :3], R0)]), t0 + d[:, 3:]
+        return so3_exp_batch(d[:, :3]) @ R0, t0 + d[:, 3:]
 
-    def residuals(x):
+    def geometry(x):
+        """Camera-frame points, their radius off the axis, incidence and image radius."""
         R, t = poses(x)
         p = np.einsum("nij,nj->ni", R[owner], pts) + t[owner]
         s = np.hypot(p[:, 0], p[:, 1])
         alpha = np.arctan2(s, p[:, 2])
-        r = _radial_basis(hyp.beta(alpha)) @ x[2 : 2 + _N_POLY]
+        basis = _radial_basis(hyp.beta(alpha))
+        return p, s, alpha, basis, basis @ x[2 : 2 + _N_POLY]
+
+    def residuals(x):
+        p, s, _, _, r = geometry(x)
         scale = r / np.maximum(s, 1e-12)
         res = x[:2] + scale[:, None] * p[:, :2] - uv
         return np.nan_to_num(res, nan=1e6).ravel()
 
-    sparsity = np.zeros((2 * n_obs, x0.size), bool)
-    sparsity[:, : 2 + _N_POLY] = True
-    for k in range(n_cam):
-        obs_rows = np.flatnonzero(owner == k)
-        cols = 2 + _N_POLY + 6 * k + np.arange(6)
-        sparsity[np.concatenate([2 * obs_rows, 2 * obs_rows + 1])[:, None], cols] = True
+    k_warp = float(np.exp(hyp.warp_w))
+    n_x = x0.size
+    rows = np.repeat(np.arange(2 * n_obs), 2 + _N_POLY + 6)
+    pose_cols = 2 + _N_POLY + 6 * owner[:, None] + np.arange(6)  # (n_obs, 6)
+    cols = np.concatenate(
+        [np.broadcast_to(np.arange(2 + _N_POLY), (n_obs, 2 + _N_POLY)), pose_cols], axis=1
+    )
+    cols = np.repeat(cols, 2, axis=0).ravel()
+
+    def jacobian(x):
+        """Analytic d residuals / d (pp, b, (w, t) per camera): (2 n_obs, n_x), sparse.
+
+        ``res = pp + r(alpha) p_xy / s`` with ``p = exp(w) R0 X + t``,
+        ``alpha = atan2(s, z)``, ``s = |p_xy|``, ``r = basis(beta(alpha)) @ b``.
+        """
+        p, s, alpha, basis, r = geometry(x)
+        s_safe = np.maximum(s, 1e-12)
+        beta = hyp.beta(alpha)
+        dbasis = np.column_stack(
+            [(2 * k + 1) * (beta / _ALPHA0_RAD) ** (2 * k) for k in range(_N_POLY)]
+        )
+        dbeta = 1.0 / (np.cos(alpha) ** 2 + (k_warp * np.sin(alpha)) ** 2)
+        dr_dalpha = (dbasis @ x[2 : 2 + _N_POLY]) * dbeta
+        rho2 = s_safe**2 + p[:, 2] ** 2
+        u = p[:, :2] / s_safe[:, None]  # unit direction in the image
+        q = r / s_safe
+        # d q / d p, q = r(alpha(s, z)) / s
+        dq_ds = dr_dalpha * (p[:, 2] / rho2) / s_safe - r / s_safe**2
+        dq_dz = dr_dalpha * (-s_safe / rho2) / s_safe
+        dq_dp = np.column_stack([dq_ds * u[:, 0], dq_ds * u[:, 1], dq_dz])  # (n, 3)
+        dres_dp = p[:, :2, None] * dq_dp[:, None, :]  # (n, 2, 3)
+        dres_dp[:, 0, 0] += q
+        dres_dp[:, 1, 1] += q
+        d = x[2 + _N_POLY :].reshape(n_cam, 6)
+        y = p - t0[owner] - d[owner, 3:]  # exp(w) R0 X
+        dp_dw = -skew(y) @ so3_left_jacobian_batch(d[:, :3])[owner]
+        block = np.empty((n_obs, 2, 2 + _N_POLY + 6))
+        block[:, :, :2] = np.eye(2)
+        block[:, :, 2 : 2 + _N_POLY] = basis[:, None, :] * u[:, :, None]
+        block[:, :, 2 + _N_POLY : 5 + _N_POLY] = dres_dp @ dp_dw
+        block[:, :, 5 + _N_POLY :] = dres_dp
+        block[~np.isfinite(block)] = 0.0
+        return csr_matrix((block.ravel(), (rows, cols)), shape=(2 * n_obs, n_x))
+
     try:
         sol = least_squares(
             residuals,
             x0,
-            jac_sparsity=sparsity,
+            jac=jacobian,
             loss="soft_l1",
             f_scale=thr_px,
             x_scale="jac",
