@@ -363,12 +363,14 @@ def _refine_pose(
         r = ph - bearings
         e = np.linalg.norm(r, axis=1)
         w, _ = robust_weight(e, Loss.HUBER, huber_rad)
-        # d(ph)/dp = (I - ph ph^T)/|p| ; dp/dw = -[R X]x ; dp/dt = I
+        # d(ph)/dp = (I - ph ph^T)/|p| ; dp/dw = -[R X]x ; dp/dt = I, and
+        # ph^T [R X]x = (ph x R X)^T, so d(ph)/dw = (-[R X]x + ph (ph x R X)^T) / |p|
         proj = (np.eye(3)[None] - ph[:, :, None] * ph[:, None, :]) / nrm[:, None, None]
         rx = p - t_
-        jac = np.concatenate([proj @ -skew(rx), proj], axis=2)  # (N, 3, 6)
-        jw = jac * w[:, None, None]
-        return np.einsum("nki,nkj->ij", jw, jac), np.einsum("nki,nk->i", jw, r)
+        d_rot = (ph[:, :, None] * _cross(ph, rx)[:, None, :] - skew(rx)) / nrm[:, None, None]
+        jac = np.concatenate([d_rot, proj], axis=2).reshape(-1, 6)  # (3N, 6)
+        jw = jac * np.repeat(w, 3)[:, None]
+        return jw.T @ jac, jw.T @ r.ravel()
 
     def retract(pose, delta):
         return so3_exp(delta[:3]) @ pose[0], pose[1] + delta[3:]
