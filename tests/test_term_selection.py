@@ -75,3 +75,23 @@ def test_warp_score_picks_the_lens_own_warp(true_w, mapping):
     # the noise (0.3 px) plus what one term leaves of the grid step's misfit (0.05 in w)
     assert scores.min() < 0.6
     assert scores.min() < 0.1 * scores.max()
+
+
+@pytest.mark.parametrize(
+    ("status", "new_sigma", "kept"),
+    [
+        ("converged", 0.40, True),
+        ("converged", 0.405, True),  # within 2 %
+        ("converged", 0.41, False),
+        ("max-iterations", 0.32, True),  # still moving, clearly better: kept
+        ("max_iterations", 0.32, True),
+        ("max-iterations", 0.395, False),  # at the limit and not clearly better
+        ("stalled: LM damping reached its upper bound", 0.30, False),
+        ("diverged", 0.30, False),
+    ],
+)
+def test_rewarp_is_kept_when_it_fits_better_even_at_the_iteration_limit(status, new_sigma, kept):
+    from gtsam_sphere.estimation.calibrate import rewarp_rejected
+
+    why = rewarp_rejected(status, new_sigma, 0.40)
+    assert (why == "") == kept, why
