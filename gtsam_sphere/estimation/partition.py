@@ -6,7 +6,9 @@ that graph with the reverse Cuthill-McKee ordering (a breadth-first ordering
 from a peripheral image that keeps covisible images close, E. Cuthill and
 J. McKee, "Reducing the bandwidth of sparse symmetric matrices", ACM 1969;
 ``scipy.sparse.csgraph.reverse_cuthill_mckee``), then cuts that order into
-``n_parts`` contiguous runs of about equal numbers of observations. A banded
+``n_parts`` contiguous runs of about equal numbers of observations (each cut
+moved, within a tolerance on the balance, to where the fewest landmarks are
+seen from both sides). A banded
 order makes the cuts small: only the landmarks seen from both sides of a cut
 (and poses tied by odometry across it) are shared.
 
@@ -26,7 +28,11 @@ __all__ = ["covisibility_partition", "separator_keys"]
 
 
 def covisibility_partition(
-    obs_image: np.ndarray, obs_point: np.ndarray, n_parts: int, n_images: int | None = None
+    obs_image: np.ndarray,
+    obs_point: np.ndarray,
+    n_parts: int,
+    n_images: int | None = None,
+    balance: float = 0.1,
 ) -> np.ndarray:
     """Part of each image: covisibility order cut into runs balanced by observations.
 
@@ -38,6 +44,10 @@ def covisibility_partition(
         Number of submaps (>= 1, at most the number of images).
     n_images : int, optional
         Number of images M (default ``max(obs_image) + 1``).
+    balance : float
+        Each cut may move by up to this fraction of a part's share of the
+        observations from the balanced position, to where it cuts the fewest
+        landmarks (a room's door instead of its middle).
 
     Returns
     -------
@@ -59,12 +69,32 @@ def covisibility_partition(
     C = (A @ A.T).tocsr()
     order = np.asarray(reverse_cuthill_mckee(C, symmetric_mode=True), np.int64)
     weight = np.bincount(obs_image, minlength=M).astype(float)[order]
-    cum = np.cumsum(weight)
-    # cut where the running count passes k / n_parts of the total; keep every part non-empty
-    cuts = np.searchsorted(cum, cum[-1] * np.arange(1, n_parts) / n_parts, side="right")
-    cuts = np.maximum(cuts, np.arange(1, n_parts))
-    cuts = np.minimum(cuts, M - n_parts + np.arange(1, n_parts))
-    cuts = np.maximum.accumulate(cuts)
+    cum = np.r_[0.0, np.cumsum(weight)]
+    # landmarks cut by a cut before position c of the order: first view < c <= last view
+    pos = np.empty(M, np.int64)
+    pos[order] = np.arange(M)
+    p_obs = pos[obs_image]
+    lo = np.full(L, M, np.int64)
+    hi = np.full(L, -1, np.int64)
+    np.minimum.at(lo, obs_point, p_obs)
+    np.maximum.at(hi, obs_point, p_obs)
+    crossing = np.zeros(M + 1, np.int64)
+    np.add.at(crossing, lo + 1, 1)
+    np.add.at(crossing, hi + 1, -1)
+    crossing = np.cumsum(crossing)  # crossing[c]: landmarks seen before and from c on
+    # each cut: the smallest crossing within +-balance of a part's share around its target
+    share = cum[-1] / n_parts
+    cuts = []
+    for k in range(1, n_parts):
+        window = np.flatnonzero(np.abs(cum - k * share) <= balance * share)
+        window = window[(window > (cuts[-1] if cuts else 0)) & (window < M)]
+        if len(window) == 0:
+            window = np.array(
+                [max(int(np.searchsorted(cum, k * share)), (cuts[-1] if cuts else 0) + 1)]
+            )
+        cuts.append(int(window[np.argmin(crossing[window])]))
+    cuts = np.minimum(np.array(cuts), M - n_parts + np.arange(1, n_parts))
+    cuts = np.maximum.accumulate(np.maximum(cuts, np.arange(1, n_parts)))
     part_in_order = np.searchsorted(cuts, np.arange(M), side="right")
     part = np.empty(M, np.int64)
     part[order] = part_in_order

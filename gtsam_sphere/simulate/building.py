@@ -39,8 +39,10 @@ from ..core.camera import SphereCamera
 __all__ = [
     "BuildingOptions",
     "BuildingScene",
+    "building_map_problem",
     "fisheye_camera",
     "perturb_poses",
+    "room_aligned_rms_m",
     "rotation_exp",
     "simulate_building",
 ]
@@ -431,3 +433,86 @@ def perturb_poses(
     w = rng.normal(scale=sigma_rot_rad, size=(M, 3))
     v = rng.normal(scale=sigma_m, size=(M, 3))
     return R @ rotation_exp(w), t + np.einsum("mij,mj->mi", R, v)
+
+
+def building_map_problem(scene: BuildingScene, seed: int = 1, odometry: bool = True):
+    """The map refinement of a simulated building: perturbed start, gauge and odometry.
+
+    The start perturbs the true poses (0.3 deg and 3 cm per axis, on the right) and
+    landmarks (5 cm per axis); the first pose has a prior at its true value
+    (1e-3 rad and m), and consecutive poses are tied by noisy odometry
+    (0.1 deg, 1 cm per axis), as in ``benchmarks/bench_map.py``. Pixel noise
+    model: ``scene.options.noise_px``, Huber 2.45.
+
+    Parameters
+    ----------
+    scene : BuildingScene
+    seed : int
+        Seed of the perturbation and odometry noise.
+    odometry : bool
+        Tie consecutive poses (else the rooms are tied by nothing but the prior).
+
+    Returns
+    -------
+    MapProblem
+    """
+    from ..estimation.map_problem import MapProblem
+
+    rng = np.random.default_rng(seed)
+    R, t = scene.world_from_cam_R, scene.world_from_cam_t
+    R0, t0 = perturb_poses(R, t, math.radians(0.3), 0.03, rng)
+    P0 = scene.points_world + rng.normal(scale=0.05, size=scene.points_world.shape)
+    M = scene.n_images
+    s_rot, s_m = math.radians(0.1), 0.01
+    sig = np.tile(np.r_[[s_rot] * 3, [s_m] * 3], (M - 1, 1))
+    dR = np.einsum("mji,mjk->mik", R[:-1], R[1:]) @ rotation_exp(
+        rng.normal(scale=s_rot, size=(M - 1, 3))
+    )
+    dt = np.einsum("mji,mj->mi", R[:-1], t[1:] - t[:-1]) + rng.normal(scale=s_m, size=(M - 1, 3))
+    odo = np.arange(M - 1) if odometry else np.zeros(0, np.int64)
+    return MapProblem(
+        camera=scene.camera,
+        uv_px=scene.uv_px,
+        obs_image=scene.obs_image,
+        obs_point=scene.obs_point,
+        world_from_cam_R=R0,
+        world_from_cam_t=t0,
+        points_world=P0,
+        sigma_px=max(scene.options.noise_px, 1e-3),
+        huber_k=2.45,
+        pose_prior_image=np.array([0]),
+        pose_prior_R=R[:1],
+        pose_prior_t=t[:1],
+        pose_prior_sigma=np.full((1, 6), 1e-3),
+        odometry_from=odo,
+        odometry_to=odo + 1,
+        odometry_R=dR[odo],
+        odometry_t=dt[odo],
+        odometry_sigma=sig[odo],
+    )
+
+
+def room_aligned_rms_m(scene: BuildingScene, points_world: np.ndarray) -> float:
+    """Landmark RMS error (m) after a 7-parameter similarity per room onto the truth.
+
+    The walls hide one room from the next, so rooms are tied by odometry alone
+    and drift with it; the per-room alignment measures the map's shape (as
+    ``benchmarks/bench_map.py``).
+
+    Parameters
+    ----------
+    scene : BuildingScene
+    points_world : ndarray, shape (L, 3)
+        Estimated landmarks, rows of ``scene.points_world`` (m).
+    """
+    from ..core.geometry import fit_similarity
+
+    sq = []
+    for r in np.unique(scene.room_of_point):
+        idx = np.flatnonzero(scene.room_of_point == r)
+        if len(idx) < 4:
+            continue
+        est = points_world[idx]
+        aligned = fit_similarity(est, scene.points_world[idx]).apply(est)
+        sq.append(np.sum((aligned - scene.points_world[idx]) ** 2, axis=1))
+    return float(np.sqrt(np.mean(np.concatenate(sq))))
