@@ -23,12 +23,34 @@ import sys
 from pathlib import Path
 
 from ..core.errors import InputError
-from . import calibrate, compare, demo, detect, evaluate, export, report, simulate, undistort
+from . import (
+    calibrate,
+    compare,
+    demo,
+    detect,
+    evaluate,
+    export,
+    refine,
+    report,
+    simulate,
+    undistort,
+)
 
 logger = logging.getLogger(__name__)
 
 #: the subcommands, in the order ``--help`` lists them
-COMMANDS = (demo, calibrate, evaluate, compare, report, simulate, detect, export, undistort)
+COMMANDS = (
+    demo,
+    calibrate,
+    evaluate,
+    compare,
+    report,
+    simulate,
+    detect,
+    export,
+    undistort,
+    refine,
+)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -36,7 +36,7 @@ from .external import ProjectionBlocks
 from .graph import point_key, pose_key
 from .optimize import levenberg_marquardt
 
-__all__ = ["MapGraph", "MapProblem", "RefineResult", "refine_global"]
+__all__ = ["MapGraph", "MapProblem", "RefineResult", "map_problem_from_dataset", "refine_global"]
 
 
 def _empty(*shape) -> np.ndarray:
@@ -417,3 +417,88 @@ def refine_global(
         iteration_s=list(info["iteration_s"]),
         stats={"engine": "local", "partitions": 1},
     )
+
+
+def map_problem_from_dataset(
+    dataset,
+    camera: SphereCamera,
+    initial_cam_from_world: dict | None = None,
+    sigma_px: float = 0.5,
+    huber_k: float | None = 2.45,
+    datum_sigma: float = 1.0,
+) -> tuple[MapProblem, list[str], list[str]]:
+    """A :class:`MapProblem` from a ``dataset@1`` and its frozen camera.
+
+    Poses start from ``initial_cam_from_world`` where given, else from a
+    resection of the image against the targets' approximate coordinates
+    (:func:`~gtsam_sphere.estimation.resect.resect`). The datum: each observed
+    target has a prior at its approximate coordinates with its ``sigma``
+    (``0``: held to 1e-6 of the units), or ``datum_sigma`` when the file gives
+    none (a free network's approximate coordinates).
+
+    Parameters
+    ----------
+    dataset : Dataset
+        From :func:`~gtsam_sphere.io.dataset.load_dataset`.
+    camera : SphereCamera
+        The frozen calibration.
+    initial_cam_from_world : dict, optional
+        Image id -> ``(R (3, 3), t (3,))`` ``cam_from_world`` start (units of the dataset).
+    sigma_px : float
+        Pixel noise per axis (px).
+    huber_k : float or None
+        Huber threshold (sigmas); None: least squares.
+    datum_sigma : float
+        Prior standard deviation of targets without ``sigma`` (units of the dataset).
+
+    Returns
+    -------
+    problem : MapProblem
+    image_ids : list of str
+        Id of each image row.
+    target_ids : list of str
+        Id of each landmark row (the observed targets).
+
+    Raises
+    ------
+    InputError
+        An image that cannot be posed (names it).
+    """
+    from .resect import resect
+
+    initial_cam_from_world = initial_cam_from_world or {}
+    used = np.unique(dataset.obs_target)
+    row = np.full(len(dataset.target_ids), -1, np.int64)
+    row[used] = np.arange(len(used))
+    M = len(dataset.image_ids)
+    R = np.empty((M, 3, 3))
+    t = np.empty((M, 3))
+    for i, iid in enumerate(dataset.image_ids):
+        if iid in initial_cam_from_world:
+            Rc, tc = (np.asarray(a, float) for a in initial_cam_from_world[iid])
+        else:
+            sel = dataset.obs_image == i
+            res = resect(camera, dataset.uv_px[sel], dataset.target_xyz[dataset.obs_target[sel]])
+            if not np.all(np.isfinite(res.R)):
+                raise InputError(
+                    f"image {iid!r}: no initial pose (resection: {res.status}); "
+                    "give images[].cam_from_world in the map"
+                )
+            Rc, tc = res.R, res.t
+        R[i], t[i] = Rc.T, -Rc.T @ tc  # world_from_cam
+    sigma = dataset.target_sigma[used].astype(float)
+    sigma = np.where(np.isnan(sigma), datum_sigma, np.maximum(sigma, 1e-6))
+    problem = MapProblem(
+        camera=camera,
+        uv_px=dataset.uv_px,
+        obs_image=dataset.obs_image,
+        obs_point=row[dataset.obs_target],
+        world_from_cam_R=R,
+        world_from_cam_t=t,
+        points_world=dataset.target_xyz[used],
+        sigma_px=sigma_px,
+        huber_k=huber_k,
+        point_prior_sigma_m=sigma,
+        point_prior_world=dataset.target_xyz[used],
+    )
+    return problem, list(dataset.image_ids), [dataset.target_ids[j] for j in used]

@@ -60,6 +60,7 @@ from pathlib import Path
 import gtsam
 import numpy as np
 
+from ..core._compat import StrEnum
 from ..core.errors import InputError
 from ..core.least_squares import LMStatus
 from ..io.dataset import write_bytes_atomic
@@ -71,6 +72,7 @@ from .partition import covisibility_partition, separator_keys
 logger = logging.getLogger(__name__)
 
 __all__ = [
+    "Engine",
     "LocalExecutor",
     "PartitionedOptions",
     "SubmapHost",
@@ -80,6 +82,13 @@ __all__ = [
 ]
 
 CHECKPOINT_VERSION = 1
+
+
+class Engine(StrEnum):
+    """Where a map refinement runs."""
+
+    LOCAL = "local"  # this process (the global LM, or the submaps one after the other)
+    RAY = "ray"  # the submaps on a Ray cluster (RayExecutor)
 
 
 @dataclass
