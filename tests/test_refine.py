@@ -87,6 +87,24 @@ def test_interrupted_run_resumes_from_its_checkpoint(small_map, global_result, t
     assert result.stats["resumed_from"] is None
 
 
+def test_parts_generated_alone_refine_to_the_whole_maps_solution():
+    from gtsam_sphere.estimation.graph import pose_key
+    from gtsam_sphere.estimation.partitioned import refine_submaps
+    from gtsam_sphere.simulate.building import BuildingOptions, building_parts
+
+    options = BuildingOptions(n_images=100, obs_per_image=40.0, seed=3)
+    parts, shared = building_parts(options, 3)
+    whole = building_parts(options, 1)[0][0].build()  # the same building in one process
+    assert sum(p.build().n_observations for p in parts) == whole.n_observations
+    reference = refine_global(whole)
+    separator = np.array([pose_key(int(i)) for i in shared], np.uint64)
+    states, info, _ = refine_submaps(parts, separator)  # recipes: built by the workers
+    assert info["separator_dim"] == 6 * len(shared)
+    assert abs(info["error"] - reference.error) <= 1e-9 * reference.error
+    truth, _ = parts[1].truth()
+    assert np.sqrt(np.mean((states[1]["P"] - truth) ** 2)) < 0.05  # 5 cm start noise, drift
+
+
 def test_bad_map_input_names_the_item(small_map):
     problem = small_map[1]
     from dataclasses import replace

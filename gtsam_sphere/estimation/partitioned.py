@@ -336,13 +336,16 @@ class SubmapHost:
     ----------
     parts : list of int
         Submap indices held here.
-    submaps : list of MapProblem
-        Their data, same order.
+    submaps : list of MapProblem, or of objects with ``build() -> MapProblem``
+        Their data, same order; a recipe (e.g. a
+        :class:`~gtsam_sphere.simulate.building.BuildingPart`) is built here, in
+        the worker, so the whole map never exists in one process.
     separator : ndarray of uint64
     """
 
-    def __init__(self, parts: list[int], submaps: list[MapProblem], separator: np.ndarray):
+    def __init__(self, parts: list[int], submaps: list, separator: np.ndarray):
         t0 = time.process_time()
+        submaps = [s if isinstance(s, MapProblem) else s.build() for s in submaps]
         self.workers = {int(k): SubmapWorker(int(k), s, separator) for k, s in zip(parts, submaps)}
         self.fingerprints = {int(k): _fingerprint(s) for k, s in zip(parts, submaps)}
         self.nbytes = {int(k): s.nbytes() for k, s in zip(parts, submaps)}
@@ -662,6 +665,46 @@ def assemble(problem_image_ids, problem_point_ids, submaps: list[MapProblem], st
     return R, t, P
 
 
+def refine_submaps(
+    submaps: list,
+    separator: np.ndarray,
+    executor_factory: Callable | None = None,
+    options: PartitionedOptions | None = None,
+    progress: Callable[[str], None] | None = None,
+    on_iteration: Callable[[int, dict], None] | None = None,
+) -> tuple[list[dict], dict, list[dict]]:
+    """Refine given submaps (data or recipes built by the workers) on an executor.
+
+    Parameters
+    ----------
+    submaps : list of MapProblem, or of objects with ``build() -> MapProblem``
+        Every factor of the map in exactly one of them (see :func:`make_submaps`).
+    separator : ndarray of uint64
+        Keys of the variables in more than one submap.
+    executor_factory : callable(submaps, separator) -> executor, optional
+        Default :class:`LocalExecutor`.
+    options, progress, on_iteration
+        As :func:`refine_partitioned`.
+
+    Returns
+    -------
+    states : list of dict
+        Final state of each submap.
+    info : dict
+        As :func:`refine_partitioned`.
+    workers : list of dict
+        :meth:`SubmapHost.info` of each worker process.
+    """
+    factory = executor_factory or LocalExecutor
+    executor = factory(submaps, separator)
+    try:
+        states, info = refine_partitioned(executor, len(submaps), options, progress, on_iteration)
+        workers = executor.infos()
+    finally:
+        executor.shutdown()
+    return states, info, workers
+
+
 def refine_map(
     problem: MapProblem,
     n_parts: int = 1,
@@ -695,13 +738,9 @@ def refine_map(
         raise InputError(f"partitions must be >= 1, got {n_parts}")
     submaps, _ = make_submaps(problem, n_parts)
     sep = separator_keys([np.r_[s.pose_keys(), s.point_keys()] for s in submaps])
-    factory = executor_factory or LocalExecutor
-    executor = factory(submaps, sep)
-    try:
-        states, info = refine_partitioned(executor, n_parts, options, progress, on_iteration)
-        workers = executor.infos()
-    finally:
-        executor.shutdown()
+    states, info, workers = refine_submaps(
+        submaps, sep, executor_factory, options, progress, on_iteration
+    )
     R, t, P = assemble(problem.image_ids, problem.point_ids, submaps, states)
     return RefineResult(
         world_from_cam_R=R,

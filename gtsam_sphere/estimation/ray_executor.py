@@ -86,11 +86,12 @@ class RayExecutor:
 
     Parameters
     ----------
-    submaps : list of MapProblem
+    submaps : list of MapProblem, or of recipes (``build() -> MapProblem``, ``n_observations``)
+        A recipe is shipped instead of the data and built in its actor.
     separator : ndarray of uint64
     n_workers : int or None
-        Actors (worker processes, one CPU each); default: one per submap, at most
-        the cluster's CPUs.
+        Actors (worker processes); default: one per submap, at most the
+        cluster's CPUs. More actors than CPUs share them (fractional ``num_cpus``).
     address : str or None
         Ray cluster address (``ray.init(address=...)``, e.g. ``"auto"`` or
         ``"ray://head:10001"``); None: a local cluster started here (unless Ray
@@ -125,9 +126,11 @@ class RayExecutor:
         self.groups = assign_parts([s.n_observations for s in submaps], n_workers)
         self.n_parts = n
         self._refs = [ray.put(s) for s in submaps]  # the data, once; held for restarts
-        remote = ray.remote(num_cpus=1, max_restarts=max_restarts, max_task_retries=max_restarts)(
-            _ActorHost
-        )
+        # one CPU per actor; more actors than CPUs share them (each still one process)
+        per_actor = min(1.0, cpus / len(self.groups))
+        remote = ray.remote(
+            num_cpus=per_actor, max_restarts=max_restarts, max_task_retries=max_restarts
+        )(_ActorHost)
         self._sep_ref = sep_ref = ray.put(np.asarray(separator, np.uint64))  # held for restarts
         self.hosts = [
             remote.remote(parts, sep_ref, *[self._refs[k] for k in parts]) for parts in self.groups
