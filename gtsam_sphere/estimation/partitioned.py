@@ -349,6 +349,7 @@ class SubmapHost:
         self.workers = {int(k): SubmapWorker(int(k), s, separator) for k, s in zip(parts, submaps)}
         self.fingerprints = {int(k): _fingerprint(s) for k, s in zip(parts, submaps)}
         self.nbytes = {int(k): s.nbytes() for k, s in zip(parts, submaps)}
+        self.n_observations = {int(k): s.n_observations for k, s in zip(parts, submaps)}
         self.build_cpu_s = time.process_time() - t0
 
     def call(self, part: int, method: str, *args):
@@ -356,13 +357,15 @@ class SubmapHost:
         return getattr(self.workers[int(part)], method)(*args)
 
     def info(self) -> dict:
-        """Process id, peak resident memory (MB), CPU seconds, data bytes and fingerprints."""
+        """Process id, peak resident memory (MB), CPU seconds, data bytes, observations
+        and fingerprints (per submap)."""
         return {
             "pid": os.getpid(),
             "peak_rss_mb": peak_rss_mb(),
             "cpu_s": time.process_time(),
             "build_cpu_s": self.build_cpu_s,
             "nbytes": dict(self.nbytes),
+            "n_observations": dict(self.n_observations),
             "fingerprints": dict(self.fingerprints),
         }
 
