@@ -321,3 +321,116 @@ def test_cli_refine_on_ray(cli_map, capsys):
     r, g = load_calibration(d / "r.json"), load_calibration(d / "g2.json")
     np.testing.assert_allclose(r.target_xyz, g.target_xyz, atol=1e-7)
     assert r.statistics["engine"] == "ray"
+
+
+def _rig_map(d):
+    """A back-to-back rig (cam1 turned 180 deg, 10 cm aside) along the building's path."""
+    from gtsam_sphere.io.calibration import RigCalibration
+    from gtsam_sphere.simulate.building import rotation_exp
+
+    scene = simulate_building(n_images=50, obs_per_image=40.0, seed=7)
+    problem = building_map_problem(scene, seed=8)
+    cam = scene.camera
+    c1_from_rig = (rotation_exp(np.array([0.0, np.pi, 0.0])), np.array([0.1, 0.0, 0.0]))
+    rng = np.random.default_rng(9)
+    images, truth_cw = [], []
+    for i in range(scene.n_images):
+        Rwc, twc = scene.world_from_cam_R[i], scene.world_from_cam_t[i]
+        R0, t0 = Rwc.T, -Rwc.T @ twc  # cam0_from_world = rig_from_world
+        for cid, (Rc, tc) in (("cam0", (np.eye(3), np.zeros(3))), ("cam1", c1_from_rig)):
+            R, t = Rc @ R0, Rc @ t0 + tc
+            room = scene.room_of_image[i]
+            idx = np.flatnonzero(scene.room_of_point == room)
+            pc = scene.points_world[idx] @ R.T + t
+            alpha = np.arctan2(np.hypot(pc[:, 0], pc[:, 1]), pc[:, 2])
+            ok = (alpha < np.radians(90.0)) & (np.linalg.norm(pc, axis=1) > 0.3)
+            uv = cam.project(pc[ok]) + rng.normal(scale=0.5, size=(int(ok.sum()), 2))
+            inside = np.all((uv > 2) & (uv < cam.width - 3), axis=1)
+            idx, uv = idx[ok][inside], uv[inside]
+            if len(idx) < 6:
+                continue
+            start = problem.world_from_cam_R[i].T  # the perturbed start, cam0
+            entry = {
+                "id": f"{cid}_{i:03d}",
+                "camera": cid,
+                "frame": f"{i:03d}",
+                "observations": [{"target": f"L{j}", "uv": p.tolist()} for j, p in zip(idx, uv)],
+            }
+            if cid == "cam0":
+                entry["cam_from_world"] = {
+                    "R": start.tolist(),
+                    "t": (-start @ problem.world_from_cam_t[i]).tolist(),
+                }
+            images.append(entry)
+            truth_cw.append((entry["id"], R, t))
+    doc = {
+        "format": "gtsam-sphere/dataset@2",
+        "units": "m",
+        "cameras": [{"id": c, "width": cam.width, "height": cam.height} for c in ("cam0", "cam1")],
+        "targets": [
+            {"id": f"L{j}", "xyz": problem.points_world[j].tolist()} for j in range(scene.n_points)
+        ],
+        "images": images,
+    }
+    (d / "rig_map.json").write_text(json.dumps(doc))
+    rig = RigCalibration(
+        camera_ids=["cam0", "cam1"],
+        cameras={"cam0": cam, "cam1": cam},
+        models={"cam0": "radial", "cam1": "radial"},
+        cam_from_rig={"cam0": (np.eye(3), np.zeros(3)), "cam1": c1_from_rig},
+        frame_ids=[],
+        rig_from_world_R=np.zeros((0, 3, 3)),
+        rig_from_world_t=np.zeros((0, 3)),
+        image_ids=[],
+        image_camera=[],
+        image_frame=[],
+        cam_from_world_R=np.zeros((0, 3, 3)),
+        cam_from_world_t=np.zeros((0, 3)),
+        target_ids=[],
+        target_xyz=np.zeros((0, 3)),
+        statistics={
+            "rms_px": 0.5,
+            "n_observations": 0,
+            "n_rejected": 0,
+            "cameras": {c: {"rms_px": 0.5} for c in ("cam0", "cam1")},
+        },
+    )
+    rig.save(d / "rig_calib.json")
+    return scene, dict((k, (R, t)) for k, R, t in truth_cw)
+
+
+def test_cli_refine_rig_map_keeps_the_rig_rigid(tmp_path):
+    from gtsam_sphere import load_calibration
+
+    scene, _ = _rig_map(tmp_path)
+    args = ["--calibration", str(tmp_path / "rig_calib.json"), "--sigma-px", "0.5", "--quiet"]
+    assert (
+        main(["refine", str(tmp_path / "rig_map.json"), *args, "-o", str(tmp_path / "g.json")]) == 0
+    )
+    out = ["-o", str(tmp_path / "p.json"), "--partitions", "3"]
+    assert main(["refine", str(tmp_path / "rig_map.json"), *args, *out]) == 0
+    g, p = load_calibration(tmp_path / "g.json"), load_calibration(tmp_path / "p.json")
+    np.testing.assert_allclose(p.target_xyz, g.target_xyz, atol=1e-7)
+    assert len(g.frame_ids) == scene.n_images
+    # every frame's two images keep the calibrated cam1_from_cam0 (ties of 1e-4 rad / m)
+    Rc, tc = g.cam_from_rig["cam1"]
+    k = {iid: q for q, iid in enumerate(g.image_ids)}
+    for i in range(0, scene.n_images, 7):
+        a, b = k.get(f"cam0_{i:03d}"), k.get(f"cam1_{i:03d}")
+        if a is None or b is None:
+            continue
+        R_rel = g.cam_from_world_R[b] @ g.cam_from_world_R[a].T  # cam1_from_cam0
+        t_rel = g.cam_from_world_t[b] - R_rel @ g.cam_from_world_t[a]
+        np.testing.assert_allclose(R_rel, Rc, atol=3e-4)
+        np.testing.assert_allclose(t_rel, tc, atol=3e-4)
+    # the targets' shape (after a similarity per room) goes from the 5 cm start to < 1 cm
+    j = np.array([int(t[1:]) for t in g.target_ids])
+    for room in np.unique(scene.room_of_point[j]):
+        sel = scene.room_of_point[j] == room
+        if sel.sum() < 10:
+            continue
+        from gtsam_sphere.core.geometry import fit_similarity
+
+        est = g.target_xyz[sel]
+        aligned = fit_similarity(est, scene.points_world[j[sel]]).apply(est)
+        assert np.sqrt(np.mean(np.sum((aligned - scene.points_world[j[sel]]) ** 2, 1))) < 0.01

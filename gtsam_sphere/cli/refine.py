@@ -15,16 +15,22 @@ from ..estimation.optimize import stderr_progress
 logger = logging.getLogger("gtsam_sphere.cli")
 
 NAME = "refine"
-HELP = "refine a map (dataset@1 observations) with a frozen calibration, locally or on Ray"
+HELP = "refine a map (dataset@1/@2 observations) with a frozen calibration, locally or on Ray"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """Arguments of ``gtsam-sphere refine``."""
     from ..estimation.partitioned import Engine
 
-    p.add_argument("map", help="dataset@1: the observations (images may give cam_from_world)")
-    p.add_argument("--calibration", required=True, help="calibration@1 of the camera (frozen)")
-    p.add_argument("-o", "--output", required=True, help="calibration@1 with the refined map")
+    p.add_argument(
+        "map", help="dataset@1 or dataset@2 (rig): observations; images may give cam_from_world"
+    )
+    p.add_argument(
+        "--calibration", required=True, help="calibration@1 (a rig: @2) of the camera(s), frozen"
+    )
+    p.add_argument(
+        "-o", "--output", required=True, help="calibration@1 (@2) holding the refined map"
+    )
     p.add_argument(
         "--engine",
         choices=[e.value for e in Engine],
@@ -71,7 +77,7 @@ def run(args) -> int:
     """Run ``gtsam-sphere refine``: 0 converged, 1 not converged (bad input raises)."""
     from ..estimation.map_problem import map_problem_from_dataset, refine_global
     from ..estimation.partitioned import Engine, PartitionedOptions, refine_map
-    from ..io.calibration import Calibration, load_calibration, single_camera
+    from ..io.calibration import Calibration, RigCalibration, load_calibration, single_camera
     from ..io.map_file import load_map
 
     engine = Engine(args.engine)
@@ -85,15 +91,31 @@ def run(args) -> int:
         raise OptionsError(f"--max-iterations must be >= 1, got {args.max_iterations}")
     if not args.datum_sigma > 0:
         raise OptionsError(f"--datum-sigma must be > 0, got {args.datum_sigma}")
-    calib = single_camera(load_calibration(args.calibration), None, args.calibration)
+    calib = load_calibration(args.calibration)
+    dataset, initial = load_map(args.map)
+    rig = hasattr(dataset, "camera_ids")
+    if rig:
+        if not isinstance(calib, RigCalibration):
+            raise OptionsError(
+                f"{args.map} is a rig map (dataset@2): --calibration must be a rig "
+                "calibration (calibration@2)"
+            )
+        camera, cam_from_rig = calib.cameras, calib.cam_from_rig
+    else:
+        calib = single_camera(calib, None, args.calibration)
+        camera, cam_from_rig = calib.camera, None
     sigma_px = args.sigma_px or float(calib.statistics.get("sigma_px", 0.5) or 0.5)
     if not sigma_px > 0:
         raise OptionsError(f"--sigma-px must be > 0, got {sigma_px}")
-    dataset, initial = load_map(args.map)
     for iid, why in dataset.skipped_images:
         logger.warning("image %r skipped: %s", iid, why)
     problem, image_ids, target_ids = map_problem_from_dataset(
-        dataset, calib.camera, initial, sigma_px=sigma_px, datum_sigma=args.datum_sigma
+        dataset,
+        camera,
+        initial,
+        sigma_px=sigma_px,
+        datum_sigma=args.datum_sigma,
+        cam_from_rig=cam_from_rig,
     )
     progress = None if args.quiet else stderr_progress
     t0 = time.perf_counter()
@@ -120,7 +142,10 @@ def run(args) -> int:
     t_cw = -np.einsum("mij,mj->mi", R_cw, result.world_from_cam_t)
     pc = np.einsum("nij,nj->ni", R_cw[problem.obs_image], result.points_world[problem.obs_point])
     pc += t_cw[problem.obs_image]
-    e = problem.uv_px - calib.camera.project(pc, valid_only=False)
+    e = np.full_like(problem.uv_px, np.nan)
+    for c, cam in enumerate(problem.cameras):
+        sel = problem.obs_camera == c
+        e[sel] = problem.uv_px[sel] - cam.project(pc[sel], valid_only=False)
     rms = float(np.sqrt(np.nanmean(np.sum(e**2, axis=1))))
     stats = {
         "rms_px": rms,
@@ -137,18 +162,29 @@ def run(args) -> int:
         "separator_dim": int(result.stats.get("separator_dim", 0)),
         "seconds": seconds,
     }
-    out = Calibration(
-        model=calib.model,
-        camera=calib.camera,
-        image_ids=image_ids,
-        cam_from_world_R=R_cw,
-        cam_from_world_t=t_cw,
-        target_ids=target_ids,
-        target_xyz=result.points_world,
-        statistics=stats,
-        units=dataset.units,
-        extra={"source": {"map": str(Path(args.map)), "calibration": str(args.calibration)}},
-    )
+    source = {"map": str(Path(args.map)), "calibration": str(args.calibration)}
+    if rig:
+        stats["cameras"] = {
+            cid: {
+                "rms_px": float(np.sqrt(np.nanmean(np.sum(e[problem.obs_camera == c] ** 2, 1)))),
+                "n_observations": int(np.sum(problem.obs_camera == c)),
+            }
+            for c, cid in enumerate(dataset.camera_ids)
+        }
+        out = _rig_output(calib, dataset, R_cw, t_cw, target_ids, result, stats, source)
+    else:
+        out = Calibration(
+            model=calib.model,
+            camera=calib.camera,
+            image_ids=image_ids,
+            cam_from_world_R=R_cw,
+            cam_from_world_t=t_cw,
+            target_ids=target_ids,
+            target_xyz=result.points_world,
+            statistics=stats,
+            units=dataset.units,
+            extra={"source": source},
+        )
     out.save(args.output)
     print(
         f"{args.output}: {problem.n_images} images, {problem.n_points} targets, "
@@ -160,3 +196,42 @@ def run(args) -> int:
     if not result.converged:
         logger.warning("the refinement did not converge: %s", result.status)
     return 0 if result.converged else 1
+
+
+def _rig_output(calib, dataset, R_cw, t_cw, target_ids, result, stats, source):
+    """The refined rig map as a ``calibration@2`` (each frame's pose from its first image)."""
+    from ..io.calibration import RigCalibration
+
+    ids = dataset.camera_ids
+    cameras = [ids[c] for c in dataset.image_camera]
+    frame_ids = dataset.frame_ids
+    first = {}
+    for i, f in enumerate(dataset.image_frame):
+        if f is not None and f not in first:
+            first[f] = i
+    rig_R, rig_t = np.empty((len(frame_ids), 3, 3)), np.empty((len(frame_ids), 3))
+    for q, f in enumerate(frame_ids):
+        i = first[f]
+        Rc, tc = calib.cam_from_rig[cameras[i]]
+        # rig_from_world = (cam_from_rig)^-1 cam_from_world
+        rig_R[q] = Rc.T @ R_cw[i]
+        rig_t[q] = Rc.T @ (t_cw[i] - tc)
+    return RigCalibration(
+        camera_ids=list(ids),
+        cameras={c: calib.cameras[c] for c in ids},
+        models={c: calib.models[c] for c in ids},
+        cam_from_rig={c: calib.cam_from_rig[c] for c in ids},
+        frame_ids=frame_ids,
+        rig_from_world_R=rig_R,
+        rig_from_world_t=rig_t,
+        image_ids=list(dataset.image_ids),
+        image_camera=cameras,
+        image_frame=list(dataset.image_frame),
+        cam_from_world_R=R_cw,
+        cam_from_world_t=t_cw,
+        target_ids=target_ids,
+        target_xyz=result.points_world,
+        statistics=stats,
+        units=dataset.units,
+        extra={"source": source},
+    )

@@ -1,14 +1,16 @@
-"""Map files: a ``dataset@1`` with optional initial poses in, a ``calibration@1`` map out.
+"""Map files: a ``dataset@1`` / ``@2`` with optional initial poses in, a calibration-format map out.
 
 ``gtsam-sphere refine`` reads the observations of a mapped sequence from a
 ``dataset@1`` file (``../shared/spec/dataset.md``). An image may carry its
 starting pose as an optional ``cam_from_world`` ``{"R": 3x3, "t": [3]}``
 (``p_cam = R @ p_world + t``, the dataset's units), e.g. from a SLAM front end;
 images without one are posed by resection against the targets' approximate
-coordinates. The refined map is written as a ``calibration@1`` document: the
-frozen camera unchanged, ``images[].cam_from_world`` and ``targets[].xyz``
-refined, ``statistics`` of the refinement, so ``load_calibration`` and
-``gtsam-sphere evaluate`` read it as they read a calibration.
+coordinates. A rig's map is a ``dataset@2`` (images name their camera and
+frame). The refined map is written as a ``calibration@1`` document (``@2`` for
+a rig, with each frame's ``rig_from_world``): the frozen camera(s) unchanged,
+``images[].cam_from_world`` and ``targets[].xyz`` refined, ``statistics`` of
+the refinement, so ``load_calibration`` and ``gtsam-sphere evaluate`` read it
+as they read a calibration.
 """
 
 from __future__ import annotations
@@ -18,24 +20,32 @@ from typing import Any
 
 import numpy as np
 
-from ..core.errors import DatasetError
 from .calibration import _pose
-from .dataset import Dataset, dataset_version, parse_dataset, read_json
+from .dataset import (
+    Dataset,
+    RigDataset,
+    dataset_version,
+    parse_dataset,
+    parse_rig_dataset,
+    read_json,
+)
 
 __all__ = ["load_map"]
 
 
-def load_map(path: str | os.PathLike) -> tuple[Dataset, dict[str, tuple[np.ndarray, np.ndarray]]]:
+def load_map(
+    path: str | os.PathLike,
+) -> tuple[Dataset | RigDataset, dict[str, tuple[np.ndarray, np.ndarray]]]:
     """Read a map: its observations and the initial poses its images give.
 
     Parameters
     ----------
     path : path-like
-        A ``gtsam-sphere/dataset@1`` file.
+        A ``gtsam-sphere/dataset@1`` or ``dataset@2`` file.
 
     Returns
     -------
-    dataset : Dataset
+    dataset : Dataset or RigDataset
     initial_cam_from_world : dict
         Image id -> ``(R (3, 3), t (3,))`` ``cam_from_world`` for the images that
         carry one.
@@ -43,17 +53,14 @@ def load_map(path: str | os.PathLike) -> tuple[Dataset, dict[str, tuple[np.ndarr
     Raises
     ------
     DatasetError
-        Not a ``dataset@1`` (a rig ``dataset@2`` is named as not supported yet),
-        or a bad pose (naming the image).
+        Not a dataset, or a bad pose (naming the image).
     """
     source = str(path)
     doc: Any = read_json(path)
-    if dataset_version(doc, source) != 1:
-        raise DatasetError(
-            f"{source}: refine reads dataset@1 maps (one camera); rig maps (dataset@2) "
-            "are not supported yet"
-        )
-    dataset = parse_dataset(doc, source)
+    if dataset_version(doc, source) == 2:
+        dataset = parse_rig_dataset(doc, source)
+    else:
+        dataset = parse_dataset(doc, source)
     poses = {}
     for im in doc.get("images", []):
         if isinstance(im, dict) and "cam_from_world" in im:
