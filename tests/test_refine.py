@@ -434,3 +434,27 @@ def test_cli_refine_rig_map_keeps_the_rig_rigid(tmp_path):
         est = g.target_xyz[sel]
         aligned = fit_similarity(est, scene.points_world[j[sel]]).apply(est)
         assert np.sqrt(np.mean(np.sum((aligned - scene.points_world[j[sel]]) ** 2, 1))) < 0.01
+
+
+def test_cli_interrupted_refine_says_it_resumes(cli_map, tmp_path, capsys, monkeypatch):
+    import gtsam_sphere.estimation.partitioned as partitioned
+
+    _, d = cli_map
+    real = partitioned._save_checkpoint
+    calls = []
+
+    def save_then_interrupt(*args, **kwargs):
+        real(*args, **kwargs)
+        calls.append(1)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(partitioned, "_save_checkpoint", save_then_interrupt)
+    out = tmp_path / "r.json"
+    args = ["refine", str(d / "map.json"), "--calibration", str(d / "calib.json"), "-o", str(out)]
+    assert main([*args, "--partitions", "2", "--sigma-px", "0.5", "--quiet"]) == 130
+    err = capsys.readouterr().err
+    assert "resume from its checkpoint" in err and not out.exists()
+    monkeypatch.setattr(partitioned, "_save_checkpoint", real)
+    assert main([*args, "--partitions", "2", "--sigma-px", "0.5"]) == 0
+    assert "resumed from" in capsys.readouterr().err
+    assert not (tmp_path / "r.json.checkpoint.npz").exists()

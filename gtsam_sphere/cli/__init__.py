@@ -123,6 +123,9 @@ def _say_why(exc: BaseException, args: argparse.Namespace) -> None:
             where = f"; the last good result is the previous {out}, unchanged"
         elif out is not None:
             where = f"; {out} was not created"
+        checkpoint = getattr(args, "checkpoint", None)
+        if checkpoint is not None and Path(checkpoint).is_file():
+            where += f"; run it again to resume from its checkpoint {checkpoint}"
         print(f"interrupted: no output file was written or changed{where}", file=sys.stderr)
     elif isinstance(exc, OSError) and not isinstance(exc, InputError):
         filename = f"{exc.filename}: " if exc.filename else ""

@@ -135,6 +135,7 @@ def run(args) -> int:
             parts = 1
         parts = min(parts, problem.n_images)
         checkpoint = args.checkpoint or f"{args.output}.checkpoint.npz"
+        args.checkpoint = checkpoint  # named by the interruption message
         options = PartitionedOptions(max_iterations=args.max_iterations, checkpoint=checkpoint)
         result = refine_map(problem, parts, factory, options, progress)
     seconds = time.perf_counter() - t0
