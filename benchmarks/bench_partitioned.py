@@ -106,6 +106,7 @@ def worker(args) -> dict:
         "wall_s": wall,
         "driver_cpu_s": cpu,
         "worker_cpu_s": [i["cpu_s"] for i in infos] if remote else [],
+        "worker_solve_cpu_s": [i["solve_cpu_s"] for i in infos] if remote else [],
         "iter_s": float(np.mean(result.iteration_s)),
         "driver_peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
         "worker_peak_mb": [i["peak_rss_mb"] for i in infos] if remote else [],
@@ -165,6 +166,8 @@ def generated(args) -> dict:
         "wall_s": wall,
         "driver_cpu_s": cpu,
         "worker_cpu_s": [i["cpu_s"] for i in infos],
+        "worker_solve_cpu_s": [i["solve_cpu_s"] for i in infos],
+        "worker_build_cpu_s": [i["build_cpu_s"] for i in infos],
         "iter_s": float(np.mean(iteration_s)),
         "driver_peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
         "worker_peak_mb": [i["peak_rss_mb"] for i in infos],
@@ -198,9 +201,10 @@ def table(rows: list[dict]) -> str:
     head = (
         "| observations | run | submaps | workers | separator dim | iterations | final cost "
         "| cost vs global | 3D RMS (mm) | 3D vs global | wall s | s / iteration "
-        "| driver CPU s | worker CPU s (max) | driver peak MB | worker peak MB (max) |"
+        "| driver CPU s | worker CPU s (max) | worker solve CPU s / iteration (sum) "
+        "| driver peak MB | worker peak MB (max) |"
     )
-    out = [head, "|" + "---|" * 16]
+    out = [head, "|" + "---|" * 17]
     for r in sorted(rows, key=lambda r: (r["n_obs"], "global" not in r["run"], r["run"])):
         g = glob.get(r["n_obs"])
         dc = f"{(r['error'] - g['error']) / g['error']:+.2e}" if g else "-"
@@ -209,11 +213,13 @@ def table(rows: list[dict]) -> str:
             d3 = "-"
         mm = f"{1e3 * r['point_rms_m']:.3f}" if math.isfinite(r["point_rms_m"]) else "-"
         wc = f"{max(r['worker_cpu_s']):.1f}" if r["worker_cpu_s"] else "-"
+        solve = r.get("worker_solve_cpu_s") or []
+        ws = f"{sum(solve) / max(r['iterations'], 1):.2f}" if solve else "-"
         out.append(
             f"| {r['n_obs']:,} | {r['run']} | {r['partitions']} | {r['workers']} "
             f"| {r['separator_dim']} | {r['iterations']} | {r['error']:.6e} | {dc} "
             f"| {mm} | {d3} | {r['wall_s']:.1f} | {r['iter_s']:.2f} "
-            f"| {r['driver_cpu_s']:.1f} | {wc} | {r['driver_peak_mb']:,.0f} "
+            f"| {r['driver_cpu_s']:.1f} | {wc} | {ws} | {r['driver_peak_mb']:,.0f} "
             f"| {_fmt_mb(r['worker_peak_mb'])} |"
         )
     by_run: dict[str, list] = {}

@@ -351,19 +351,25 @@ class SubmapHost:
         self.nbytes = {int(k): s.nbytes() for k, s in zip(parts, submaps)}
         self.n_observations = {int(k): s.n_observations for k, s in zip(parts, submaps)}
         self.build_cpu_s = time.process_time() - t0
+        self.solve_cpu_s = 0.0
 
     def call(self, part: int, method: str, *args):
-        """Run ``SubmapWorker.method(*args)`` of submap ``part``."""
-        return getattr(self.workers[int(part)], method)(*args)
+        """Run ``SubmapWorker.method(*args)`` of submap ``part`` (its CPU time is counted)."""
+        t0 = time.process_time()
+        try:
+            return getattr(self.workers[int(part)], method)(*args)
+        finally:
+            self.solve_cpu_s += time.process_time() - t0
 
     def info(self) -> dict:
-        """Process id, peak resident memory (MB), CPU seconds, data bytes, observations
-        and fingerprints (per submap)."""
+        """Process id, peak resident memory (MB), CPU seconds (all, building the
+        submaps, in the solver's calls), data bytes, observations and fingerprints."""
         return {
             "pid": os.getpid(),
             "peak_rss_mb": peak_rss_mb(),
             "cpu_s": time.process_time(),
             "build_cpu_s": self.build_cpu_s,
+            "solve_cpu_s": self.solve_cpu_s,
             "nbytes": dict(self.nbytes),
             "n_observations": dict(self.n_observations),
             "fingerprints": dict(self.fingerprints),
