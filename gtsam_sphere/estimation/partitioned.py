@@ -539,7 +539,8 @@ def refine_partitioned(
     states : list of dict
         Final state of each submap (``R``, ``t``, ``P`` in its rows).
     info : dict
-        ``initial_error``, ``error``, ``iterations``, ``status`` (LMStatus),
+        ``initial_error`` (the cost this run started from: the checkpoint's when resumed),
+        ``error``, ``iterations``, ``status`` (LMStatus),
         ``iteration_s``, ``lambda``, ``resumed_from`` (iteration or None),
         ``separator_dim``.
     """
