@@ -176,6 +176,7 @@ def cli_map(tmp_path_factory):
     return scene, d
 
 
+@pytest.mark.slow  # the rig test runs the same two paths in the fast loop
 def test_cli_refine_local_and_partitioned_agree(cli_map, capsys):
     scene, d = cli_map
     assert (
