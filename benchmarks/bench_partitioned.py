@@ -224,8 +224,10 @@ def table(rows: list[dict]) -> str:
         )
     by_run: dict[str, list] = {}
     for r in rows:
-        by_run.setdefault(r["run"].split("x")[0] if r["run"].startswith("ray") else r["run"], [])
-        by_run[r["run"].split("x")[0] if r["run"].startswith("ray") else r["run"]].append(r)
+        if "global" in r["run"] and r["run"] != "global":
+            continue  # gen-global-P: a reference, one size
+        name = r["run"].split("x")[0] if r["run"].startswith("ray") else r["run"]
+        by_run.setdefault("gen" if name.startswith("gen") else name, []).append(r)
     for run, rs in sorted(by_run.items()):
         sizes = sorted({r["n_obs"] for r in rs})
         if len(sizes) >= 2:
