@@ -269,6 +269,7 @@ def test_ray_worker_killed_mid_run_converges_to_the_same_answer(small_map, globa
         pids = [w["pid"] for w in result.stats["workers"]]
         assert killed[0] not in pids  # the actor was restarted in a new process
         assert result.converged
+        assert result.iterations == global_result.iterations  # no iteration lost or repeated
         assert abs(result.error - global_result.error) <= 1e-9 * global_result.error
         np.testing.assert_allclose(result.points_world, global_result.points_world, atol=1e-8)
     finally:
