@@ -23,12 +23,34 @@ import sys
 from pathlib import Path
 
 from ..core.errors import InputError
-from . import calibrate, compare, demo, detect, evaluate, export, report, simulate, undistort
+from . import (
+    calibrate,
+    compare,
+    demo,
+    detect,
+    evaluate,
+    export,
+    refine,
+    report,
+    simulate,
+    undistort,
+)
 
 logger = logging.getLogger(__name__)
 
 #: the subcommands, in the order ``--help`` lists them
-COMMANDS = (demo, calibrate, evaluate, compare, report, simulate, detect, export, undistort)
+COMMANDS = (
+    demo,
+    calibrate,
+    evaluate,
+    compare,
+    report,
+    simulate,
+    detect,
+    export,
+    undistort,
+    refine,
+)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -101,6 +123,9 @@ def _say_why(exc: BaseException, args: argparse.Namespace) -> None:
             where = f"; the last good result is the previous {out}, unchanged"
         elif out is not None:
             where = f"; {out} was not created"
+        checkpoint = getattr(args, "checkpoint", None)
+        if checkpoint is not None and Path(checkpoint).is_file():
+            where += f"; run it again to resume from its checkpoint {checkpoint}"
         print(f"interrupted: no output file was written or changed{where}", file=sys.stderr)
     elif isinstance(exc, OSError) and not isinstance(exc, InputError):
         filename = f"{exc.filename}: " if exc.filename else ""

@@ -38,9 +38,13 @@ from ..core.camera import SphereCamera
 
 __all__ = [
     "BuildingOptions",
+    "BuildingPart",
     "BuildingScene",
+    "building_map_problem",
+    "building_parts",
     "fisheye_camera",
     "perturb_poses",
+    "room_aligned_rms_m",
     "rotation_exp",
     "simulate_building",
 ]
@@ -431,3 +435,264 @@ def perturb_poses(
     w = rng.normal(scale=sigma_rot_rad, size=(M, 3))
     v = rng.normal(scale=sigma_m, size=(M, 3))
     return R @ rotation_exp(w), t + np.einsum("mij,mj->mi", R, v)
+
+
+def building_map_problem(scene: BuildingScene, seed: int = 1, odometry: bool = True):
+    """The map refinement of a simulated building: perturbed start, gauge and odometry.
+
+    The start perturbs the true poses (0.3 deg and 3 cm per axis, on the right) and
+    landmarks (5 cm per axis); the first pose has a prior at its true value
+    (1e-3 rad and m), and consecutive poses are tied by noisy odometry
+    (0.1 deg, 1 cm per axis), as in ``benchmarks/bench_map.py``. Pixel noise
+    model: ``scene.options.noise_px``, Huber 2.45.
+
+    Parameters
+    ----------
+    scene : BuildingScene
+    seed : int
+        Seed of the perturbation and odometry noise.
+    odometry : bool
+        Tie consecutive poses (else the rooms are tied by nothing but the prior).
+
+    Returns
+    -------
+    MapProblem
+    """
+    from ..estimation.map_problem import MapProblem
+
+    rng = np.random.default_rng(seed)
+    R, t = scene.world_from_cam_R, scene.world_from_cam_t
+    R0, t0 = perturb_poses(R, t, math.radians(0.3), 0.03, rng)
+    P0 = scene.points_world + rng.normal(scale=0.05, size=scene.points_world.shape)
+    M = scene.n_images
+    s_rot, s_m = math.radians(0.1), 0.01
+    sig = np.tile(np.r_[[s_rot] * 3, [s_m] * 3], (M - 1, 1))
+    dR = np.einsum("mji,mjk->mik", R[:-1], R[1:]) @ rotation_exp(
+        rng.normal(scale=s_rot, size=(M - 1, 3))
+    )
+    dt = np.einsum("mji,mj->mi", R[:-1], t[1:] - t[:-1]) + rng.normal(scale=s_m, size=(M - 1, 3))
+    odo = np.arange(M - 1) if odometry else np.zeros(0, np.int64)
+    return MapProblem(
+        camera=scene.camera,
+        uv_px=scene.uv_px,
+        obs_image=scene.obs_image,
+        obs_point=scene.obs_point,
+        world_from_cam_R=R0,
+        world_from_cam_t=t0,
+        points_world=P0,
+        sigma_px=max(scene.options.noise_px, 1e-3),
+        huber_k=2.45,
+        pose_prior_image=np.array([0]),
+        pose_prior_R=R[:1],
+        pose_prior_t=t[:1],
+        pose_prior_sigma=np.full((1, 6), 1e-3),
+        odometry_from=odo,
+        odometry_to=odo + 1,
+        odometry_R=dR[odo],
+        odometry_t=dt[odo],
+        odometry_sigma=sig[odo],
+    )
+
+
+def room_aligned_rms_m(scene: BuildingScene, points_world: np.ndarray) -> float:
+    """Landmark RMS error (m) after a 7-parameter similarity per room onto the truth.
+
+    The walls hide one room from the next, so rooms are tied by odometry alone
+    and drift with it; the per-room alignment measures the map's shape (as
+    ``benchmarks/bench_map.py``).
+
+    Parameters
+    ----------
+    scene : BuildingScene
+    points_world : ndarray, shape (L, 3)
+        Estimated landmarks, rows of ``scene.points_world`` (m).
+    """
+    from ..core.geometry import fit_similarity
+
+    sq = []
+    for r in np.unique(scene.room_of_point):
+        idx = np.flatnonzero(scene.room_of_point == r)
+        if len(idx) < 4:
+            continue
+        est = points_world[idx]
+        aligned = fit_similarity(est, scene.points_world[idx]).apply(est)
+        sq.append(np.sum((aligned - scene.points_world[idx]) ** 2, axis=1))
+    return float(np.sqrt(np.mean(np.concatenate(sq))))
+
+
+@dataclass
+class BuildingPart:
+    """A run of rooms of a building, generated alone: one submap of a map too big for a process.
+
+    The building is :func:`simulate_building`'s (same options, same geometry) but
+    every random draw is keyed by what it belongs to (the trajectory's phases by
+    ``options.seed``, a room's landmarks and pixel noise by ``(seed, room)``, an
+    image's start perturbation and odometry noise by ``(perturb_seed, image)``),
+    so any part is generated in any process, alone, and parts agree on what they
+    share: the first image of the next part (tied by odometry to this part's
+    last image). The random streams differ from :func:`simulate_building`'s: a
+    part series is a building of its own, not a cut of that function's.
+
+    Start, gauge and odometry as :func:`building_map_problem` (0.3 deg and 3 cm
+    per pose, 5 cm per landmark, prior on image 0, odometry 0.1 deg and 1 cm).
+    No outliers (``outlier_rate`` must be 0).
+
+    Attributes
+    ----------
+    options : BuildingOptions
+        The whole building (``n_images`` is the whole map's).
+    first_room, n_rooms : int
+        Rooms ``first_room .. first_room + n_rooms - 1`` are this part's.
+    perturb_seed : int
+        Seed of the start perturbation and the odometry noise.
+    """
+
+    options: BuildingOptions
+    first_room: int
+    n_rooms: int
+    perturb_seed: int = 1
+
+    def image_range(self) -> range:
+        """Global ids of this part's own images."""
+        ipr = self.options.images_per_room
+        a = self.first_room * ipr
+        return range(a, min(self.options.n_images, a + self.n_rooms * ipr))
+
+    @property
+    def n_observations(self) -> int:
+        """Expected observations (``obs_per_image`` per own image), for load balancing."""
+        return int(len(self.image_range()) * self.options.obs_per_image)
+
+    def build(self):
+        """The part's :class:`~gtsam_sphere.estimation.map_problem.MapProblem` (global ids).
+
+        Returns
+        -------
+        MapProblem
+            Own images, plus the next part's first image when there is one (the
+            odometry's end); landmark ids ``room * per_room + index``.
+        """
+        problem, _ = self._generate()
+        return problem
+
+    def truth(self) -> tuple[np.ndarray, np.ndarray]:
+        """True landmarks of :meth:`build`'s rows, (L, 3) m, and their rooms (L,)."""
+        _, truth = self._generate(truth_only=True)
+        return truth
+
+    def _generate(self, truth_only: bool = False):
+        from ..estimation.map_problem import MapProblem
+
+        opts = self.options
+        opts.validate()
+        if opts.outlier_rate:
+            raise ValueError("BuildingPart generates no outliers: outlier_rate must be 0")
+        camera = opts.camera or fisheye_camera(opts.fov_deg)
+        half_fov = (
+            math.radians(0.5 * opts.fov_deg) if opts.camera is None else camera.max_alpha_rad()
+        )
+        M = opts.n_images
+        total_rooms = max(1, math.ceil(M / opts.images_per_room))
+        R, t, room_of_image = _trajectory(opts, total_rooms, np.random.default_rng([opts.seed, 0]))
+        rng = np.random.default_rng([opts.seed, 1])
+        pilot = _room_landmarks(opts, 2000, rng)
+        first = np.flatnonzero(room_of_image == 0)
+        pc = np.einsum("mji,mnj->mni", R[first], pilot[None] - t[first, None])
+        seen, _ = _visible(camera, pc.reshape(-1, 3), opts, half_fov)
+        per_room = max(4, int(round(opts.obs_per_image / max(float(seen.mean()), 1e-3))))
+        own = np.array(self.image_range(), np.int64)
+        images = np.r_[own, [own[-1] + 1]] if own[-1] + 1 < M else own
+        row_of_image = {int(g): q for q, g in enumerate(images)}
+        length = opts.room_size_m[0]
+        pts, ids, rooms, oi, op, uvs, p0 = [], [], [], [], [], [], []
+        n_pts = 0
+        for r in range(self.first_room, self.first_room + self.n_rooms):
+            imgs = np.flatnonzero(room_of_image == r)
+            if len(imgs) == 0:
+                continue
+            rr = np.random.default_rng([opts.seed, 2, r])
+            pw = _room_landmarks(opts, per_room, rr) + np.array([r * length, 0.0, 0.0])
+            pc = np.einsum("mji,mnj->mni", R[imgs], pw[None] - t[imgs, None]).reshape(-1, 3)
+            ok, uv = _visible(camera, pc, opts, half_fov)
+            ok = ok.reshape(len(imgs), len(pw))
+            used = ok.sum(0) >= max(opts.min_track, 1)
+            ok &= used
+            new_index = np.cumsum(used) - 1 + n_pts
+            ii, jj = np.nonzero(ok)
+            oi.append(np.array([row_of_image[int(g)] for g in imgs])[ii])
+            op.append(new_index[jj])
+            uv = uv.reshape(len(imgs), len(pw), 2)[ii, jj]
+            uvs.append(uv + rr.normal(scale=opts.noise_px, size=uv.shape))
+            pts.append(pw[used])
+            ids.append(r * per_room + np.flatnonzero(used))
+            rooms.append(np.full(int(used.sum()), r))
+            pr = np.random.default_rng([self.perturb_seed, 4, r])
+            p0.append(pw[used] + pr.normal(scale=0.05, size=(int(used.sum()), 3)))
+            n_pts += int(used.sum())
+        truth = (np.concatenate(pts), np.concatenate(rooms))
+        if truth_only:
+            return None, truth
+        R0, t0 = np.empty((len(images), 3, 3)), np.empty((len(images), 3))
+        for q, i in enumerate(images):
+            g = np.random.default_rng([self.perturb_seed, 3, int(i)])
+            w, v = g.normal(scale=math.radians(0.3), size=3), g.normal(scale=0.03, size=3)
+            R0[q] = R[i] @ rotation_exp(w)
+            t0[q] = t[i] + R[i] @ v
+        s_rot, s_m = math.radians(0.1), 0.01
+        odo = own[own + 1 < M]
+        dR, dt = np.empty((len(odo), 3, 3)), np.empty((len(odo), 3))
+        for q, i in enumerate(odo):
+            g = np.random.default_rng([self.perturb_seed, 5, int(i)])
+            dR[q] = R[i].T @ R[i + 1] @ rotation_exp(g.normal(scale=s_rot, size=3))
+            dt[q] = R[i].T @ (t[i + 1] - t[i]) + g.normal(scale=s_m, size=3)
+        has_prior = self.first_room == 0
+        problem = MapProblem(
+            camera=camera,
+            uv_px=np.concatenate(uvs),
+            obs_image=np.concatenate(oi),
+            obs_point=np.concatenate(op),
+            world_from_cam_R=R0,
+            world_from_cam_t=t0,
+            points_world=np.concatenate(p0),
+            image_ids=images,
+            point_ids=np.concatenate(ids),
+            sigma_px=max(opts.noise_px, 1e-3),
+            huber_k=2.45,
+            pose_prior_image=np.array([0] if has_prior else [], np.int64),
+            pose_prior_R=R[:1] if has_prior else np.zeros((0, 3, 3)),
+            pose_prior_t=t[:1] if has_prior else np.zeros((0, 3)),
+            pose_prior_sigma=np.full((1 if has_prior else 0, 6), 1e-3),
+            odometry_from=odo,
+            odometry_to=odo + 1,
+            odometry_R=dR,
+            odometry_t=dt,
+            odometry_sigma=np.tile(np.r_[[s_rot] * 3, [s_m] * 3], (len(odo), 1)),
+        )
+        return problem, truth
+
+
+def building_parts(options: BuildingOptions, n_parts: int, perturb_seed: int = 1):
+    """Cut a building into ``n_parts`` :class:`BuildingPart` s of whole rooms (as equal as can be).
+
+    Parameters
+    ----------
+    options : BuildingOptions
+    n_parts : int
+    perturb_seed : int
+
+    Returns
+    -------
+    parts : list of BuildingPart
+    separator_image_ids : ndarray of int
+        Images shared by two parts (each part's first image but the first's).
+    """
+    total_rooms = max(1, math.ceil(options.n_images / options.images_per_room))
+    if not 1 <= n_parts <= total_rooms:
+        raise ValueError(f"n_parts must be between 1 and the {total_rooms} rooms, got {n_parts}")
+    bounds = np.linspace(0, total_rooms, n_parts + 1).round().astype(int)
+    parts = [
+        BuildingPart(options, int(a), int(b - a), perturb_seed)
+        for a, b in zip(bounds[:-1], bounds[1:])
+    ]
+    shared = np.array([p.image_range()[0] for p in parts[1:]], np.int64)
+    return parts, shared

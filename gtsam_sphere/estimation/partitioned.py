@@ -1,0 +1,772 @@
+"""Partitioned map refinement: submaps on workers, a reduced separator system solved centrally.
+
+The method is Levenberg-Marquardt on the whole map whose linear systems are
+solved by domain decomposition (a Schur complement on the separator), the
+submap scheme of K. Ni, D. Steedly and F. Dellaert, "Out-of-Core Bundle
+Adjustment for Large-Scale 3D Reconstruction" (ICCV 2007) and of K. Ni and
+F. Dellaert, "Multi-Level Submap Based SLAM Using Nested Dissection" (IROS
+2010). Each iteration:
+
+1. every submap worker linearises its own factors (the factor engine's
+   vectorised blocks, :meth:`MapProblem.graph
+   <gtsam_sphere.estimation.map_problem.MapProblem.graph>`) at its current
+   values, adds the damping ``lambda * I`` of its interior variables and
+   eliminates them (GTSAM's partial sequential elimination, COLAMD order): what
+   is left is a dense Hessian factor on its separator variables (the Schur
+   complement of its interior);
+2. the driver sums the submaps' Hessians on the separator, adds
+   ``lambda * I`` there and solves the reduced system (SciPy sparse LU);
+3. every worker back-substitutes its interior given the separator's step,
+   retracts, and returns its cost at the trial point and its predicted decrease;
+4. the driver accepts the step when the summed cost went down (``lambda``
+   divided by ``lambdaFactor``), or rejects it (``lambda`` multiplied, the
+   workers re-eliminate at the same linearisation point).
+
+Every factor lives in exactly one submap (:mod:`.partition`), so the summed
+costs and reduced systems are those of the whole graph: each step is the step
+of the global :func:`~gtsam_sphere.estimation.optimize.levenberg_marquardt`
+(GTSAM's default LM, ``lambda * I`` on every variable) up to rounding, the same
+acceptance, the same convergence test (:func:`decrease_converged`), hence the
+same answer as the global solve. Unlike a consensus scheme (ADMM) nothing is
+approximate and no extra iterations are needed; the price is the separator
+system on the driver (its size is the cut of the covisibility graph, small for
+maps that follow a trajectory).
+
+Where the work runs is an *executor* (:class:`LocalExecutor` here, in process;
+:class:`~gtsam_sphere.estimation.ray_executor.RayExecutor` on a Ray cluster):
+workers each hold some submaps, built once from their data; per iteration only
+the separator step (driver -> worker), the reduced systems and two numbers per
+submap (worker -> driver) travel. A worker's current values are returned as
+opaque states (with Ray: object references that stay in the object store), so a
+worker that dies is recreated from its data and its last state and the call is
+repeated: no iteration is lost. The driver writes a checkpoint (the states,
+``lambda``, the cost, the iteration) atomically after every accepted iteration;
+a run started again with the same checkpoint path resumes from it.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import logging
+import math
+import os
+import resource
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import gtsam
+import numpy as np
+
+from ..core._compat import StrEnum
+from ..core.errors import InputError
+from ..core.least_squares import LMStatus
+from ..io.dataset import write_bytes_atomic
+from .engine import TrustedPass
+from .map_problem import MapProblem, RefineResult, lm_params
+from .optimize import decrease_converged
+from .partition import covisibility_partition, separator_keys
+
+logger = logging.getLogger(__name__)
+
+__all__ = [
+    "Engine",
+    "LocalExecutor",
+    "PartitionedOptions",
+    "SubmapHost",
+    "SubmapWorker",
+    "make_submaps",
+    "refine_partitioned",
+]
+
+CHECKPOINT_VERSION = 1
+
+
+class Engine(StrEnum):
+    """Where a map refinement runs."""
+
+    LOCAL = "local"  # this process (the global LM, or the submaps one after the other)
+    RAY = "ray"  # the submaps on a Ray cluster (RayExecutor)
+
+
+@dataclass
+class PartitionedOptions:
+    """Options of :func:`refine_partitioned`.
+
+    Attributes
+    ----------
+    max_iterations : int
+        LM iterations at most.
+    relative_tolerance : float
+        Converged when an accepted step lowers the cost by at most this fraction.
+    checkpoint : str or Path or None
+        File of the checkpoint (written atomically after each accepted
+        iteration; read at the start when it exists and belongs to the same
+        submaps). None: no checkpoint.
+    keep_checkpoint : bool
+        Keep the checkpoint file after a finished run (default: removed).
+    """
+
+    max_iterations: int = 100
+    relative_tolerance: float = 1e-5
+    checkpoint: str | os.PathLike | None = None
+    keep_checkpoint: bool = False
+
+
+# --------------------------------------------------------------------------- submaps
+
+
+def make_submaps(problem: MapProblem, n_parts: int) -> tuple[list[MapProblem], np.ndarray]:
+    """Cut a map into ``n_parts`` submaps (:func:`covisibility_partition`).
+
+    Parameters
+    ----------
+    problem : MapProblem
+    n_parts : int
+
+    Returns
+    -------
+    submaps : list of MapProblem
+    part : ndarray of int, shape (M,)
+        Submap of each image row.
+    """
+    part = covisibility_partition(problem.obs_image, problem.obs_point, n_parts, problem.n_images)
+    # a landmark's prior goes with the submap of its first observation (once in the map)
+    first = np.full(problem.n_points, -1, np.int64)
+    first[problem.obs_point[::-1]] = part[problem.obs_image[::-1]]
+    submaps = [
+        problem.submap(np.flatnonzero(part == k), prior_points=first == k) for k in range(n_parts)
+    ]
+    return submaps, part
+
+
+def _state_token(part: int, counter: int) -> str:
+    return f"{part}:{counter}:{os.getpid()}:{time.monotonic_ns()}"
+
+
+class SubmapWorker:
+    """One submap's graph and values: linearise, eliminate the interior, step.
+
+    Parameters
+    ----------
+    part : int
+        Submap index.
+    submap : MapProblem
+        Its data (observations, initial values, priors, odometry).
+    separator : ndarray of uint64
+        Keys shared between submaps (the whole map's separator; this submap's
+        separator variables are the ones among its keys).
+
+    Notes
+    -----
+    A *state* is a dict of numpy arrays: ``R`` (m, 3, 3), ``t`` (m, 3)
+    (world_from_cam, metres), ``P`` (l, 3) (world, metres) in the submap's rows,
+    and a ``token`` naming it; a worker keeps the ``gtsam.Values`` of the states it
+    made, and rebuilds one it does not know (after a restart) from its arrays.
+    """
+
+    def __init__(self, part: int, submap: MapProblem, separator: np.ndarray):
+        self.part = int(part)
+        self.problem = submap
+        self.built = submap.graph()
+        self.pose_keys = submap.pose_keys()
+        self.point_keys = submap.point_keys()
+        keys = np.r_[self.pose_keys, self.point_keys]
+        sep = np.intersect1d(keys, np.asarray(separator, np.uint64))
+        self.separator = [int(k) for k in sep]
+        sep_set = set(self.separator)
+        self.interior = [int(k) for k in keys if int(k) not in sep_set]
+        self.dims = {int(k): 6 for k in self.pose_keys}
+        self.dims.update({int(k): 3 for k in self.point_keys})
+        self._counter = 0
+        self._values: dict[str, tuple[gtsam.Values, TrustedPass]] = {}
+        self._linear: tuple | None = None  # (token, lam, lin, bayes net)
+        # lambda * I on the interior variables: one factor each, sigma set per trial
+        self._damping = gtsam.GaussianFactorGraph()
+        for k in self.interior:
+            d = self.dims[k]
+            self._damping.add(
+                gtsam.JacobianFactor(k, np.eye(d), np.zeros(d), gtsam.noiseModel.Unit.Create(d))
+            )
+        self._damping_factors = [
+            (self._damping.at(q), self.dims[k]) for q, k in enumerate(self.interior)
+        ]
+
+    # ------------------------------------------------------------------ states
+
+    def initial_state(self) -> dict:
+        """The state of the submap's initial values."""
+        p = self.problem
+        return {
+            "token": f"{self.part}:initial",
+            "R": p.world_from_cam_R.copy(),
+            "t": p.world_from_cam_t.copy(),
+            "P": p.points_world.copy(),
+        }
+
+    def _remember(self, token: str, values: gtsam.Values, passes: TrustedPass) -> None:
+        self._values[token] = (values, passes)
+        while len(self._values) > 3:  # the current state and the last trials
+            self._values.pop(next(iter(self._values)))
+
+    def _at(self, state: dict) -> tuple[gtsam.Values, TrustedPass]:
+        got = self._values.get(state["token"])
+        if got is None:
+            from .map_problem import values_from_arrays
+
+            values = values_from_arrays(
+                self.pose_keys, state["R"], state["t"], self.point_keys, state["P"]
+            )
+            got = (values, TrustedPass(values, jacobians=True))
+            self._remember(state["token"], *got)
+        return got
+
+    def _state_of(self, values: gtsam.Values) -> dict:
+        from .map_problem import arrays_from_values
+
+        R, t, P = arrays_from_values(values, self.pose_keys, self.point_keys)
+        self._counter += 1
+        return {"token": _state_token(self.part, self._counter), "R": R, "t": t, "P": P}
+
+    # ------------------------------------------------------------------ the work
+
+    def error(self, state: dict) -> float:
+        """The submap's cost at ``state`` (GTSAM's error: half the weighted sum of squares)."""
+        values, passes = self._at(state)
+        with passes:
+            return float(self.built.graph.error(values))
+
+    def _eliminate(self, state: dict, lam: float):
+        if self._linear is not None and self._linear[:2] == (state["token"], lam):
+            return self._linear
+        values, passes = self._at(state)
+        if self._linear is not None and self._linear[0] == state["token"]:
+            lin = self._linear[2]
+        else:
+            with passes:
+                lin = self.built.graph.linearize(values)
+        sigma = 1.0 / math.sqrt(lam)
+        for factor, d in self._damping_factors:
+            factor.setModel(False, np.full(d, sigma))
+        damped = gtsam.GaussianFactorGraph()
+        damped.push_back(lin)
+        damped.push_back(self._damping)
+        if self.separator:
+            bayes, rest = damped.eliminatePartialSequential(self.interior)
+        else:
+            bayes, rest = damped.eliminateSequential(), None
+        self._linear = (state["token"], lam, lin, bayes, rest)
+        return self._linear
+
+    def reduce(self, state: dict, lam: float) -> dict:
+        """Eliminate the interior (damped by ``lam``): the Schur complement on the separator.
+
+        Parameters
+        ----------
+        state : dict
+        lam : float
+            LM damping ``lambda`` (``lambda * I`` on the interior variables).
+
+        Returns
+        -------
+        dict
+            ``keys`` (list of int, separator keys of this submap, the Hessian's
+            order), ``dims`` (list of int), ``information`` (n, n) and ``linear``
+            (n,): the reduced cost ``0.5 (c - 2 x^T linear + x^T information x)``
+            of a separator step ``x``.
+        """
+        *_, rest = self._eliminate(state, lam)
+        if rest is None or rest.size() == 0:
+            return {"keys": [], "dims": [], "information": np.zeros((0, 0)), "linear": np.zeros(0)}
+        hessian = gtsam.HessianFactor(rest)
+        keys = [int(k) for k in hessian.keys()]
+        return {
+            "keys": keys,
+            "dims": [self.dims[k] for k in keys],
+            "information": np.array(hessian.information(), dtype=float, copy=True),
+            "linear": np.array(hessian.linearTerm(), dtype=float, copy=True).reshape(-1),
+        }
+
+    def step(self, state: dict, lam: float, keys: list, delta: np.ndarray):
+        """Back-substitute the interior given the separator step, retract, evaluate.
+
+        Parameters
+        ----------
+        state : dict
+        lam : float
+        keys : list of int
+            Separator keys of ``delta`` (the order :meth:`reduce` returned).
+        delta : ndarray, shape (n,)
+            Separator step (tangent coordinates, ``[omega, v]`` per pose, metres per point).
+
+        Returns
+        -------
+        summary : dict
+            ``error`` (cost at the trial point) and ``predicted`` (decrease of the
+            undamped linearised cost).
+        trial : dict
+            The trial state.
+        """
+        _, _, lin, bayes, _ = self._eliminate(state, lam)
+        given = gtsam.VectorValues()
+        at = 0
+        for k in keys:
+            d = self.dims[int(k)]
+            given.insert(int(k), np.asarray(delta[at : at + d], float))
+            at += d
+        step = bayes.optimize(given) if self.separator else bayes.optimize()
+        values, _ = self._at(state)
+        zero = values.zeroVectors()
+        predicted = lin.error(zero) - lin.error(step)
+        trial = values.retract(step)
+        passes = TrustedPass(trial, jacobians=True)
+        with passes:
+            error = float(self.built.graph.error(trial))
+        new_state = self._state_of(trial)
+        self._remember(new_state["token"], trial, passes)
+        return {"error": error, "predicted": float(predicted)}, new_state
+
+
+class SubmapHost:
+    """The submaps of one worker process (a Ray actor, or the driver itself locally).
+
+    Parameters
+    ----------
+    parts : list of int
+        Submap indices held here.
+    submaps : list of MapProblem, or of objects with ``build() -> MapProblem``
+        Their data, same order; a recipe (e.g. a
+        :class:`~gtsam_sphere.simulate.building.BuildingPart`) is built here, in
+        the worker, so the whole map never exists in one process.
+    separator : ndarray of uint64
+    """
+
+    def __init__(self, parts: list[int], submaps: list, separator: np.ndarray):
+        t0 = time.process_time()
+        submaps = [s if isinstance(s, MapProblem) else s.build() for s in submaps]
+        self.workers = {int(k): SubmapWorker(int(k), s, separator) for k, s in zip(parts, submaps)}
+        self.fingerprints = {int(k): _fingerprint(s) for k, s in zip(parts, submaps)}
+        self.nbytes = {int(k): s.nbytes() for k, s in zip(parts, submaps)}
+        self.n_observations = {int(k): s.n_observations for k, s in zip(parts, submaps)}
+        self.build_cpu_s = time.process_time() - t0
+        self.solve_cpu_s = 0.0
+
+    def call(self, part: int, method: str, *args):
+        """Run ``SubmapWorker.method(*args)`` of submap ``part`` (its CPU time is counted)."""
+        t0 = time.process_time()
+        try:
+            return getattr(self.workers[int(part)], method)(*args)
+        finally:
+            self.solve_cpu_s += time.process_time() - t0
+
+    def info(self) -> dict:
+        """Process id, peak resident memory (MB), CPU seconds (all, building the
+        submaps, in the solver's calls), data bytes, observations and fingerprints."""
+        return {
+            "pid": os.getpid(),
+            "peak_rss_mb": peak_rss_mb(),
+            "cpu_s": time.process_time(),
+            "build_cpu_s": self.build_cpu_s,
+            "solve_cpu_s": self.solve_cpu_s,
+            "nbytes": dict(self.nbytes),
+            "n_observations": dict(self.n_observations),
+            "fingerprints": dict(self.fingerprints),
+        }
+
+
+def peak_rss_mb() -> float:
+    """Peak resident memory of this process (MB, ``getrusage`` ``ru_maxrss``)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def _fingerprint(problem: MapProblem) -> str:
+    h = hashlib.sha256()
+    for arr in (
+        problem.uv_px,
+        problem.obs_image,
+        problem.obs_point,
+        problem.image_ids,
+        problem.point_ids,
+        problem.world_from_cam_t,
+        problem.points_world,
+    ):
+        h.update(np.ascontiguousarray(arr).tobytes())
+    return h.hexdigest()[:16]
+
+
+class LocalExecutor:
+    """Runs every submap in this process (the reference for the Ray executor).
+
+    Parameters
+    ----------
+    submaps : list of MapProblem
+    separator : ndarray of uint64
+    """
+
+    def __init__(self, submaps: list[MapProblem], separator: np.ndarray):
+        self.n_parts = len(submaps)
+        self.host = SubmapHost(list(range(len(submaps))), submaps, separator)
+
+    def call(self, part: int, method: str, *args, num_returns: int = 1):
+        """Run the method now; returns its result (a tuple for two returns)."""
+        return self.host.call(part, method, *args)
+
+    def get(self, results):
+        """The results themselves (nothing is remote)."""
+        return results
+
+    def put(self, obj):
+        """``obj`` itself."""
+        return obj
+
+    def infos(self) -> list[dict]:
+        """One :meth:`SubmapHost.info` (this process)."""
+        return [self.host.info()]
+
+    def shutdown(self) -> None:
+        """Nothing to stop."""
+
+
+# --------------------------------------------------------------------------- checkpoints
+
+
+def _save_checkpoint(path, fingerprint: str, iteration: int, lam: float, error: float, states):
+    arrays = {
+        "version": np.array(CHECKPOINT_VERSION),
+        "fingerprint": np.array(fingerprint),
+        "iteration": np.array(iteration),
+        "lam": np.array(lam),
+        "error": np.array(error),
+        "n_parts": np.array(len(states)),
+    }
+    for k, s in enumerate(states):
+        arrays[f"R{k}"], arrays[f"t{k}"], arrays[f"P{k}"] = s["R"], s["t"], s["P"]
+    buffer = io.BytesIO()
+    np.savez(buffer, **arrays)
+    write_bytes_atomic(path, buffer.getvalue())
+
+
+def _load_checkpoint(path, fingerprint: str):
+    """``(iteration, lam, error, states)`` of a checkpoint of these submaps, or None."""
+    if path is None or not Path(path).is_file():
+        return None
+    try:
+        with np.load(path) as z:
+            if int(z["version"]) != CHECKPOINT_VERSION or str(z["fingerprint"]) != fingerprint:
+                logger.warning("checkpoint %s belongs to another map or partition: ignored", path)
+                return None
+            n = int(z["n_parts"])
+            states = [
+                {"token": f"{k}:checkpoint", "R": z[f"R{k}"], "t": z[f"t{k}"], "P": z[f"P{k}"]}
+                for k in range(n)
+            ]
+            return int(z["iteration"]), float(z["lam"]), float(z["error"]), states
+    except (OSError, ValueError, KeyError) as exc:
+        logger.warning("checkpoint %s unreadable (%s): ignored", path, exc)
+        return None
+
+
+# --------------------------------------------------------------------------- the driver
+
+
+def _solve_separator(reduced: list[dict], lam: float):
+    """Sum the submaps' reduced systems, damp, solve. Returns (layout, step) or None."""
+    import scipy.sparse
+    import scipy.sparse.linalg
+
+    offset: dict[int, int] = {}
+    dims: dict[int, int] = {}
+    for r in reduced:
+        for k, d in zip(r["keys"], r["dims"]):
+            if k not in offset:
+                offset[k] = sum(dims.values())
+                dims[k] = d
+    n = sum(dims.values())
+    if n == 0:
+        return offset, np.zeros(0)
+    rows, cols, vals = [], [], []
+    g = np.zeros(n)
+    for r in reduced:
+        if not r["keys"]:
+            continue
+        idx = np.concatenate(
+            [np.arange(offset[k], offset[k] + d) for k, d in zip(r["keys"], r["dims"])]
+        )
+        rows.append(np.repeat(idx, len(idx)))
+        cols.append(np.tile(idx, len(idx)))
+        vals.append(r["information"].reshape(-1))
+        np.add.at(g, idx, r["linear"])
+    rows.append(np.arange(n))
+    cols.append(np.arange(n))
+    vals.append(np.full(n, lam))
+    H = scipy.sparse.csc_matrix(
+        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n)
+    )
+    try:
+        x = scipy.sparse.linalg.splu(H).solve(g)
+    except RuntimeError:  # exactly singular
+        return None
+    if not np.all(np.isfinite(x)):
+        return None
+    return offset, x
+
+
+def refine_partitioned(
+    executor,
+    n_parts: int,
+    options: PartitionedOptions | None = None,
+    progress: Callable[[str], None] | None = None,
+    on_iteration: Callable[[int, dict], None] | None = None,
+) -> tuple[list[dict], dict]:
+    """Levenberg-Marquardt over submaps with the separator solved centrally (see the module).
+
+    Parameters
+    ----------
+    executor : LocalExecutor or RayExecutor
+        Holds the submaps (``call``, ``get``, ``put``, ``infos``).
+    n_parts : int
+        Number of submaps.
+    options : PartitionedOptions
+    progress : callable(str), optional
+        One line per iteration.
+    on_iteration : callable(iteration, info), optional
+        Called after each iteration (tests use it to kill a worker).
+
+    Returns
+    -------
+    states : list of dict
+        Final state of each submap (``R``, ``t``, ``P`` in its rows).
+    info : dict
+        ``initial_error`` (the cost this run started from: the checkpoint's when resumed),
+        ``error``, ``iterations``, ``status`` (LMStatus),
+        ``iteration_s``, ``lambda``, ``resumed_from`` (iteration or None),
+        ``separator_dim``.
+    """
+    opts = options or PartitionedOptions()
+    p = lm_params(opts.max_iterations, opts.relative_tolerance)
+    fingerprint = hashlib.sha256(
+        "".join(
+            f"{k}:{v};"
+            for info in executor.infos()
+            for k, v in sorted(info["fingerprints"].items())
+        ).encode()
+    ).hexdigest()[:16]
+    resumed = _load_checkpoint(opts.checkpoint, fingerprint)
+    if resumed is not None:
+        first_iteration, lam, error, loaded = resumed
+        states = [executor.put(s) for s in loaded]
+        initial_error = error
+        if progress:
+            progress(
+                f"resumed from {opts.checkpoint}: iteration {first_iteration}, cost {error:.6e}"
+            )
+    else:
+        first_iteration, lam = 0, p.getlambdaInitial()
+        states = [executor.call(k, "initial_state") for k in range(n_parts)]
+        error = float(
+            sum(executor.get([executor.call(k, "error", states[k]) for k in range(n_parts)]))
+        )
+        initial_error = error
+    if progress:
+        progress(f"iteration {first_iteration:3d}  cost {error:.6e}  ({n_parts} submaps)")
+    info = {
+        "initial_error": initial_error,
+        "iteration_s": [],
+        "resumed_from": resumed and resumed[0],
+    }
+    status = LMStatus.MAX_ITERATIONS
+    sep_dim = 0
+    iteration = first_iteration
+    while iteration < p.getMaxIterations():
+        t0 = time.perf_counter()
+        accepted = False
+        while lam <= p.getlambdaUpperBound():
+            reduced = executor.get(
+                [executor.call(k, "reduce", states[k], lam) for k in range(n_parts)]
+            )
+            solved = _solve_separator(reduced, lam)
+            if solved is None:  # as GTSAM's LM: an indeterminate system is a failed step
+                lam *= p.getlambdaFactor()
+                continue
+            offset, x = solved
+            sep_dim = len(x)
+            calls = []
+            for k in range(n_parts):
+                keys = reduced[k]["keys"]
+                idx = [
+                    np.arange(offset[q], offset[q] + d) for q, d in zip(keys, reduced[k]["dims"])
+                ]
+                delta = x[np.concatenate(idx)] if idx else np.zeros(0)
+                calls.append(executor.call(k, "step", states[k], lam, keys, delta, num_returns=2))
+            summaries = executor.get([c[0] for c in calls])
+            trial_error = float(sum(s["error"] for s in summaries))
+            predicted = float(sum(s["predicted"] for s in summaries))
+            if trial_error < error and predicted > 0:
+                lam = max(lam / p.getlambdaFactor(), p.getlambdaLowerBound())
+                accepted = True
+                break
+            lam *= p.getlambdaFactor()
+        info["iteration_s"].append(time.perf_counter() - t0)
+        iteration += 1
+        if not accepted:
+            status = LMStatus.STALLED
+            break
+        previous = error
+        states, error = [c[1] for c in calls], trial_error
+        if progress:
+            progress(
+                f"iteration {iteration:3d}  cost {error:.6e}  lambda {lam:.1e}  "
+                f"separator {sep_dim}  {info['iteration_s'][-1]:.2f} s"
+            )
+        done = (
+            decrease_converged(previous, error, p.getAbsoluteErrorTol(), p.getRelativeErrorTol())
+            or error < p.getErrorTol()
+        )
+        if opts.checkpoint is not None and not done:
+            _save_checkpoint(
+                opts.checkpoint, fingerprint, iteration, lam, error, executor.get(states)
+            )
+        if on_iteration is not None:
+            on_iteration(iteration, {"error": error, "lambda": lam})
+        if done:
+            status = LMStatus.CONVERGED
+            break
+    final = executor.get(states)
+    if opts.checkpoint is not None and not opts.keep_checkpoint:
+        Path(opts.checkpoint).unlink(missing_ok=True)
+    info.update(
+        iterations=iteration,
+        error=error,
+        status=status,
+        separator_dim=sep_dim,
+        converged=status is LMStatus.CONVERGED,
+        **{"lambda": lam},
+    )
+    return final, info
+
+
+def assemble(problem_image_ids, problem_point_ids, submaps: list[MapProblem], states: list[dict]):
+    """The whole map's arrays from the submaps' states.
+
+    Parameters
+    ----------
+    problem_image_ids : ndarray of int, shape (M,)
+    problem_point_ids : ndarray of int, shape (L,)
+        Global ids of the rows wanted.
+    submaps : list of MapProblem
+    states : list of dict
+
+    Returns
+    -------
+    R : ndarray, shape (M, 3, 3)
+    t : ndarray, shape (M, 3)
+    P : ndarray, shape (L, 3)
+    """
+    M, L = len(problem_image_ids), len(problem_point_ids)
+    row_i = {int(g): q for q, g in enumerate(problem_image_ids)}
+    row_l = {int(g): q for q, g in enumerate(problem_point_ids)}
+    R, t, P = np.full((M, 3, 3), np.nan), np.full((M, 3), np.nan), np.full((L, 3), np.nan)
+    for s, st in zip(submaps, states):
+        ri = np.array([row_i[int(g)] for g in s.image_ids])
+        rl = np.array([row_l[int(g)] for g in s.point_ids])
+        R[ri], t[ri], P[rl] = st["R"], st["t"], st["P"]
+    return R, t, P
+
+
+def refine_submaps(
+    submaps: list,
+    separator: np.ndarray,
+    executor_factory: Callable | None = None,
+    options: PartitionedOptions | None = None,
+    progress: Callable[[str], None] | None = None,
+    on_iteration: Callable[[int, dict], None] | None = None,
+) -> tuple[list[dict], dict, list[dict]]:
+    """Refine given submaps (data or recipes built by the workers) on an executor.
+
+    Parameters
+    ----------
+    submaps : list of MapProblem, or of objects with ``build() -> MapProblem``
+        Every factor of the map in exactly one of them (see :func:`make_submaps`).
+    separator : ndarray of uint64
+        Keys of the variables in more than one submap.
+    executor_factory : callable(submaps, separator) -> executor, optional
+        Default :class:`LocalExecutor`.
+    options, progress, on_iteration
+        As :func:`refine_partitioned`.
+
+    Returns
+    -------
+    states : list of dict
+        Final state of each submap.
+    info : dict
+        As :func:`refine_partitioned`.
+    workers : list of dict
+        :meth:`SubmapHost.info` of each worker process.
+    """
+    factory = executor_factory or LocalExecutor
+    executor = factory(submaps, separator)
+    try:
+        states, info = refine_partitioned(executor, len(submaps), options, progress, on_iteration)
+        workers = executor.infos()
+    finally:
+        executor.shutdown()
+    return states, info, workers
+
+
+def refine_map(
+    problem: MapProblem,
+    n_parts: int = 1,
+    executor_factory: Callable | None = None,
+    options: PartitionedOptions | None = None,
+    progress: Callable[[str], None] | None = None,
+    on_iteration: Callable[[int, dict], None] | None = None,
+) -> RefineResult:
+    """Refine a map in ``n_parts`` submaps (see the module), in process or on an executor.
+
+    Parameters
+    ----------
+    problem : MapProblem
+    n_parts : int
+        Number of submaps (>= 1).
+    executor_factory : callable(submaps, separator) -> executor, optional
+        E.g. ``RayExecutor.factory(...)``; default :class:`LocalExecutor`.
+    options : PartitionedOptions
+    progress : callable(str), optional
+    on_iteration : callable(iteration, info), optional
+
+    Returns
+    -------
+    RefineResult
+        ``stats`` holds ``partitions``, ``separator_dim``, ``separator_keys``,
+        ``observations_per_part``, ``workers`` (per worker process: ``pid``,
+        ``peak_rss_mb``, ``cpu_s``) and ``resumed_from``.
+    """
+    problem.validate()
+    if n_parts < 1:
+        raise InputError(f"partitions must be >= 1, got {n_parts}")
+    submaps, _ = make_submaps(problem, n_parts)
+    sep = separator_keys([np.r_[s.pose_keys(), s.point_keys()] for s in submaps])
+    states, info, workers = refine_submaps(
+        submaps, sep, executor_factory, options, progress, on_iteration
+    )
+    R, t, P = assemble(problem.image_ids, problem.point_ids, submaps, states)
+    return RefineResult(
+        world_from_cam_R=R,
+        world_from_cam_t=t,
+        points_world=P,
+        initial_error=float(info["initial_error"]),
+        error=float(info["error"]),
+        iterations=int(info["iterations"]),
+        status=info["status"],
+        iteration_s=list(info["iteration_s"]),
+        stats={
+            "partitions": n_parts,
+            "separator_dim": int(info["separator_dim"]),
+            "separator_keys": len(sep),
+            "observations_per_part": [s.n_observations for s in submaps],
+            "workers": workers,
+            "resumed_from": info["resumed_from"],
+        },
+    )
