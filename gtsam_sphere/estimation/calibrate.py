@@ -1080,7 +1080,8 @@ def distrust_reasons(calib: Calibration, cov_theta, options, problem: BundleProb
     st = calib.statistics
     out = []
     if not st["converged"]:
-        out.append(f"the optimiser did not converge ({st['status']})")
+        detail = f": {st['status_message']}" if st.get("status_message") else ""
+        out.append(f"the optimiser did not converge ({st['status']}{detail})")
     if options.covariance and problem.fixed_intrinsics is None and cov_theta is None:
         out.append("the normal equations are singular: some intrinsics are not determined")
     cam = calib.camera
@@ -1251,10 +1252,12 @@ def _result(dataset, problem, adj, correction, history, options, n_input_images)
         "fov_deg": float(2 * np.max(inc)),
         "n_beyond_90deg": int(np.sum(inc > 90.0)),
         "iterations": int(history[-1]["iteration"]),
-        "status": adj.result.status,
+        "status": str(adj.result.status.value),
         "converged": bool(adj.result.converged),
         "datum": problem.datum.value,
     }
+    if adj.result.message:
+        statistics["status_message"] = adj.result.message
     weighted = problem.free_targets[
         np.isfinite(problem.target_sigma[problem.free_targets])
         & (problem.target_sigma[problem.free_targets] > 0)
