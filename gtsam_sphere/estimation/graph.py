@@ -564,24 +564,53 @@ class BundleProblem:
         Exact control: one block per image (its variables are the pose and the
         intrinsics, so nothing is zero-padded). Free targets: tiles of
         :func:`_tile_observations`, at most ``points_per_factor`` targets by
-        ``IMAGES_PER_FACTOR`` images. Cached while the observations' images and targets,
-        the fixed targets and ``points_per_factor`` stay the same.
+        ``IMAGES_PER_FACTOR`` images. Cached (:meth:`_structure`).
         """
-        # the tiling depends only on which target each image sees: a problem rebuilt for a
-        # new noise scale, loss or correction (every robust stage) reuses it
+        return [g.copy() for g in self._structure()[0]]
+
+    def _structure(self) -> tuple[list[np.ndarray], list[tuple]]:
+        """The blocks' observations (:meth:`_tile_groups`) and variables (:meth:`_layout`).
+
+        Both depend only on which target each image sees, the fixed targets, the image
+        keys and ``points_per_factor``: a problem rebuilt for a new noise scale, loss or
+        correction (every robust stage, every kNN round) reuses them.
+        """
+        image_pose, image_ext = self.image_keys()
         fingerprint = hashlib.sha256(
             b"".join(
                 np.ascontiguousarray(a).tobytes()
-                for a in (self.obs_image, self.obs_target, self.fixed)
+                for a in (self.obs_image, self.obs_target, self.fixed, image_pose, image_ext)
             )
             + str(int(self.points_per_factor)).encode()
         ).digest()
-        cached = getattr(self, "_groups_cache", None)
-        if cached is not None and cached[0] == fingerprint:
-            return [g.copy() for g in cached[1]]
-        groups = self._tile_groups()
-        self._groups_cache = (fingerprint, [g.copy() for g in groups])
-        return groups
+        cached = getattr(self, "_structure_cache", None)
+        if cached is None or cached[0] != fingerprint:
+            groups = self._tile_groups()
+            cached = (fingerprint, groups, self._layout(groups, image_pose, image_ext))
+            self._structure_cache = cached
+        return cached[1], cached[2]
+
+    def _layout(self, groups, image_pose: np.ndarray, image_ext: np.ndarray) -> list[tuple]:
+        """Per block: pose keys, point keys, their local indices, extrinsic keys and
+        local indices, and the target of each observation."""
+        out = []
+        for idx in groups:
+            obs_pose = image_pose[self.obs_image[idx]]
+            obs_ext = image_ext[self.obs_image[idx]]
+            poses = np.unique(obs_pose)
+            exts = np.unique(obs_ext[obs_ext >= 0])
+            ext_local = np.where(obs_ext >= 0, np.searchsorted(exts, obs_ext), -1)
+            tgt = self.obs_target[idx]
+            free = ~self.fixed[tgt]
+            points = np.unique(tgt[free])
+            point_local = np.full(len(idx), -1)
+            point_local[free] = np.searchsorted(points, tgt[free])
+            pose_local = np.searchsorted(poses, obs_pose)
+            point_keys = [point_key(t) for t in points]
+            out.append(
+                (poses.tolist(), point_keys, pose_local, point_local, exts.tolist(), ext_local, tgt)
+            )
+        return out
 
     def _tile_groups(self) -> list[np.ndarray]:
         """:meth:`_groups` computed (not cached)."""
@@ -611,24 +640,16 @@ class BundleProblem:
 
     def _make_blocks(self) -> list[ObservationBlock]:
         uv = self.corrected_uv_px
-        image_pose, image_ext = self.image_keys()
+        groups, layout = self._structure()
         blocks = []
-        for idx in self.block_obs:
-            obs_pose = image_pose[self.obs_image[idx]]
-            obs_ext = image_ext[self.obs_image[idx]]
-            poses = np.unique(obs_pose)
-            exts = np.unique(obs_ext[obs_ext >= 0])
-            ext_local = np.where(obs_ext >= 0, np.searchsorted(exts, obs_ext), -1)
-            tgt = self.obs_target[idx]
-            free = ~self.fixed[tgt]
-            points = np.unique(tgt[free])
-            point_local = np.full(len(idx), -1)
-            point_local[free] = np.searchsorted(points, tgt[free])
+        for idx, (poses, points, pose_local, point_local, exts, ext_local, tgt) in zip(
+            groups, layout
+        ):
             blocks.append(
                 ObservationBlock(
-                    poses.tolist(),
-                    [point_key(t) for t in points],
-                    np.searchsorted(poses, obs_pose),
+                    poses,
+                    points,
+                    pose_local,
                     point_local,
                     self.target_xyz[tgt],
                     uv[idx],
@@ -636,7 +657,7 @@ class BundleProblem:
                     self.brown_scale_px,
                     self.noise,
                     self.radial_names,
-                    exts.tolist(),
+                    exts,
                     ext_local,
                     self.intrinsics_key,
                     radial_warp=self.radial_warp,
