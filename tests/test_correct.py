@@ -8,6 +8,8 @@ from sklearn.utils.estimator_checks import parametrize_with_checks
 
 from gtsam_sphere.core.camera import SphereCamera
 from gtsam_sphere.estimation.correct import (
+    K_GRID,
+    WEIGHTS,
     KNNCorrection,
     NeighbourSearches,
     consistent_with_neighbours,
@@ -236,3 +238,28 @@ def test_memoised_neighbour_searches_give_the_same_training():
     shared = train_correction(uv, target, 0, 0, subset, searches)
     assert searches.searches > before
     np.testing.assert_array_equal(fresh[1], shared[1])
+
+
+def test_cross_validation_prefix_means_equal_local_fit():
+    """The cross-validation's plain means of every k (one cumulative sum per fold) are
+    local_fit's numbers exactly, for both weightings, with coinciding pixels (a zero
+    distance) among the training points."""
+    from sklearn.model_selection import KFold
+    from sklearn.neighbors import NearestNeighbors
+
+    from gtsam_sphere.core.correction_model import local_fit
+
+    rng = np.random.default_rng(8)
+    uv = rng.uniform(0, 500, (700, 2))
+    uv[650:] = uv[:50]  # duplicated pixels
+    y = _field(uv) + rng.normal(0, 0.1, uv.shape)
+    model = KNNCorrection(degree=None)
+    ks, ws = list(K_GRID), list(WEIGHTS)
+    scores = model._cross_validate(uv, y, ks, ws, [0, 1])
+    sse = dict.fromkeys(scores, 0.0)
+    for train, test in KFold(10, shuffle=True, random_state=0).split(uv):
+        dist, ind = NearestNeighbors().fit(uv[train]).kneighbors(uv[test], n_neighbors=max(ks))
+        for d, k, w in sse:
+            pred = local_fit(uv[train], y[train], uv[test], ind[:, :k], dist[:, :k], w, d)
+            sse[(d, k, w)] += float(np.sum((pred - y[test]) ** 2))
+    assert scores == {key: float(np.sqrt(v / len(uv))) for key, v in sse.items()}

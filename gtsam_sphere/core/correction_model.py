@@ -106,6 +106,24 @@ def local_fit(
     return np.where(exact[:, None], mean, coef[:, 0, :])
 
 
+def _prefix_means(yn: np.ndarray, dist: np.ndarray, weights: str) -> Callable[[int], np.ndarray]:
+    """``k -> local_fit(..., degree=0)`` of the first ``k`` of the neighbours ``yn``.
+
+    ``yn`` (M, K, 2) and ``dist`` (M, K), neighbours by increasing distance. The weighted
+    sums of every prefix come from one cumulative sum; it adds the neighbours in the
+    order ``local_fit``'s sum does, so each mean is the same number (a test checks it).
+    """
+    w = _neighbour_weights(dist, weights)  # a zero distance comes first: same per prefix
+    sums = np.cumsum(w[..., None] * yn, axis=1)
+
+    def mean(k: int) -> np.ndarray:
+        sw = w[:, :k].sum(1)
+        sw = np.where(sw > 0, sw, 1.0)
+        return sums[:, k - 1] / sw[:, None]
+
+    return mean
+
+
 def neighbours_without_self(nn, X: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
     """Distances and indices (N, k) of each training point's ``k`` nearest *other* points."""
     n = len(X)
@@ -303,7 +321,9 @@ class KNNCorrection(RegressorMixin, BaseEstimator):
         """Pooled ``cv_folds``-fold RMS (px, per point) of every candidate.
 
         One neighbour search per fold (``max(ks)`` neighbours) serves every candidate,
-        and the neighbours' values are gathered once per fold.
+        the neighbours' values are gathered once per fold, and the plain means
+        (``degree`` 0) of every ``k`` come from one cumulative sum
+        (:func:`_prefix_means`).
         """
         n_splits = min(self.cv_folds, len(X))
         k_max = min(max(ks), len(X))
@@ -322,11 +342,15 @@ class KNNCorrection(RegressorMixin, BaseEstimator):
         for train, test, dist, ind in memoised_search(searches, key, fold_searches):
             k_fold = ind.shape[1]
             yn = y[train][ind]  # (M, k_fold, 2): every candidate's neighbours' values
+            means = {w: _prefix_means(yn, dist, w) for w in ws} if 0 in degrees else {}
             for d, k, w in sse:
                 kk = min(k, k_fold)
-                pred = local_fit(
-                    X[train], y[train], X[test], ind[:, :kk], dist[:, :kk], w, d, yn=yn[:, :kk]
-                )
+                if d == 0:
+                    pred = means[w](kk)
+                else:
+                    pred = local_fit(
+                        X[train], y[train], X[test], ind[:, :kk], dist[:, :kk], w, d, yn=yn[:, :kk]
+                    )
                 sse[(d, k, w)] += float(np.sum((pred - y[test]) ** 2))
         return {key: float(np.sqrt(v / len(X))) for key, v in sse.items()}
 
