@@ -201,6 +201,7 @@ def adjust(
     label: str = "",
     max_stages: int = 6,
     first_stage_mask: np.ndarray | None = None,
+    warm: bool = False,
 ) -> Adjustment:
     """Robust adjustment, optionally estimating ``sigma_px`` from the residuals.
 
@@ -216,6 +217,12 @@ def adjust(
     observations the initialisation's RANSAC found consistent, so blunders
     cannot pull it (the robust stages then see every observation).
 
+    ``warm``: ``values`` is a converged robust adjustment of this problem with a
+    slightly changed measurement (a kNN round's new corrections), and
+    ``problem.noise.sigma_px`` its scale. There is then no poor start for a first
+    least-squares stage to protect: the robust stages start from that scale, and stop
+    as soon as it changes by less than 5% (one stage, usually).
+
     Returns
     -------
     Adjustment
@@ -225,7 +232,7 @@ def adjust(
         [pose_key(int(i)) for i in np.unique(problem.obs_image)],
         [INTRINSICS_KEY],
     )
-    if estimate_sigma:
+    if estimate_sigma and not warm:
         # graduated robustness: start from the scale of the initial residuals, so a poor
         # start is not frozen by tiny robust weights, then shrink to the estimated noise
         problem.build()
@@ -242,7 +249,7 @@ def adjust(
     for stage in range(1, max_stages + 1):
         # stage 1 in plain least squares: robust weights computed at a poor start can hold
         # a wrong minimum (observed with a 300 deg lens); later stages are robust
-        first_l2 = estimate_sigma and stage == 1 and len(problem.uv_px) > 0
+        first_l2 = estimate_sigma and not warm and stage == 1 and len(problem.uv_px) > 0
         problem.noise = NoiseOptions(
             problem.noise.sigma_px, Loss.L2 if first_l2 else loss, problem.noise.loss_threshold
         )
@@ -284,7 +291,7 @@ def adjust(
         if progress:
             progress(f"{label}robust scale estimate sigma = {sigma:.4f} px (was {old:.4f})")
         problem.noise = NoiseOptions(sigma, loss, problem.noise.loss_threshold)
-        if abs(sigma - old) <= 0.05 * old and stage > 1:
+        if abs(sigma - old) <= 0.05 * old and (stage > 1 or warm):
             break
     if estimate_sigma and loss is Loss.HUBER:
         # Huber bounds a blunder's influence but does not remove it: with gross outliers

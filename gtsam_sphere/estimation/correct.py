@@ -197,15 +197,15 @@ def grey_box_loop(problem, adj, optimizer, options, say: Callable[[str], None], 
         )
         prev_rms = _rms(adj.residuals_px, train)
         problem.corrections_px = corrections
-        # the first (least-squares) stage leaves out the previous round's outliers
-        consistent = np.linalg.norm(adj.residuals_px, axis=1) < 5.0 * adj.sigma_px
-        adj = adjust(  # a sigma the user gave (--sigma-px) stays fixed, as in the first stages
+        # a warm start: the robust stages go on from the previous round's solution and
+        # scale (no least-squares stage; a sigma the user gave (--sigma-px) stays fixed)
+        adj = adjust(
             problem,
             adj.values,
             optimizer,
             None,
             estimate_sigma=options.sigma_px is None,
-            first_stage_mask=consistent,
+            warm=True,
         )
         rms_train = _rms(adj.residuals_px, train)
         rms = _inlier_rms(adj)
