@@ -355,6 +355,10 @@ def choose_minimal_constraint_points(xyz: np.ndarray) -> tuple[int, int, int]:
 
 #: images per observation block of free targets (see :func:`_tile_observations`)
 IMAGES_PER_FACTOR = 8
+#: the blocks' observations and variables by a digest of what they depend on
+#: (:meth:`BundleProblem._structure`), oldest first
+_STRUCTURES: dict[bytes, tuple[list, list]] = {}
+_STRUCTURES_KEPT = 8
 
 
 def _group_targets(seen: list[np.ndarray], n_images: int, size: int) -> list[list[int]]:
@@ -573,7 +577,9 @@ class BundleProblem:
 
         Both depend only on which target each image sees, the fixed targets, the image
         keys and ``points_per_factor``: a problem rebuilt for a new noise scale, loss or
-        correction (every robust stage, every kNN round) reuses them.
+        correction (every robust stage, every kNN round), or a copy of it with other
+        intrinsics or target sigmas (``dataclasses.replace``), reuses them. They are kept
+        by a digest of those inputs, the last :data:`_STRUCTURES_KEPT`.
         """
         image_pose, image_ext = self.image_keys()
         fingerprint = hashlib.sha256(
@@ -583,12 +589,14 @@ class BundleProblem:
             )
             + str(int(self.points_per_factor)).encode()
         ).digest()
-        cached = getattr(self, "_structure_cache", None)
-        if cached is None or cached[0] != fingerprint:
+        cached = _STRUCTURES.get(fingerprint)
+        if cached is None:
             groups = self._tile_groups()
-            cached = (fingerprint, groups, self._layout(groups, image_pose, image_ext))
-            self._structure_cache = cached
-        return cached[1], cached[2]
+            cached = (groups, self._layout(groups, image_pose, image_ext))
+            while len(_STRUCTURES) >= _STRUCTURES_KEPT:
+                del _STRUCTURES[next(iter(_STRUCTURES))]  # the oldest
+            _STRUCTURES[fingerprint] = cached
+        return cached
 
     def _layout(self, groups, image_pose: np.ndarray, image_ext: np.ndarray) -> list[tuple]:
         """Per block: pose keys, point keys, their local indices, extrinsic keys and
