@@ -671,6 +671,12 @@ def test_optimize_lm_takes_gtsams_steps_with_the_given_ordering(small_scene):
         assert np.linalg.norm(d) < 1e-10, (i, d)
     capped = optimize(graph, initial, OptimizerOptions(max_iterations=2), ordering)
     assert capped.status is LMStatus.MAX_ITERATIONS and len(capped.history) == 3
+    # from its own optimum: one more (negligible) step, GTSAM's, and converged
+    again = optimize(graph, ours.values, options, ordering)
+    ref = gtsam.LevenbergMarquardtOptimizer(graph, ours.values, params)
+    ref.iterate()
+    assert again.status is LMStatus.CONVERGED and len(again.history) == 2
+    assert again.history[1]["cost"] == pytest.approx(ref.error(), rel=1e-12)
 
 
 # ----------------------------------------------------------------------------- simulator, bench

@@ -186,27 +186,33 @@ def _optimize_lm(
     progress: Callable[[str], None] | None,
     label: str,
 ) -> OptimizationResult:
-    """:func:`optimize` with Levenberg-Marquardt: :func:`levenberg_marquardt` (Python-driven).
+    """:func:`optimize` with Levenberg-Marquardt: :func:`levenberg_marquardt` (Python-driven)
+    taking GTSAM's steps (``gtsam_steps``) with the caller's ordering.
 
     GTSAM's C++ optimiser hands each ``CustomFactor`` callback a copy of its whole
     ``Values`` (see :func:`levenberg_marquardt`); the bundle graphs' hundreds of engine
     blocks made that copy a third of the optimiser's time (GoPro-like room: 2.7 s of
-    process time over a calibration's 14 adjustments, 1.9 s driven from Python, the
-    same iterations and costs to 10 digits).
+    process time over a calibration's 14 adjustments, 1.9 s driven from Python), for
+    the same steps: the calibrations are the same bytes.
     """
     t0 = time.perf_counter()
     history: list[dict] = []
+    last = [initial]  # the last accepted state: what an exception leaves
 
-    def on_iteration(it: int, cost: float) -> None:
+    def on_iteration(it: int, cost: float, values: gtsam.Values) -> None:
         history.append({"iteration": it, "cost": cost, "seconds": time.perf_counter() - t0})
+        last[0] = values
         if progress:
             progress(f"{label}iteration {it:3d}  cost {cost:.6e}")
 
     result = OptimizationResult(values=initial, history=history)
     try:
-        values, info = levenberg_marquardt(graph, initial, params, ordering, on_iteration)
+        values, info = levenberg_marquardt(
+            graph, initial, params, ordering, on_iteration, gtsam_steps=True
+        )
     except RuntimeError as exc:  # cheirality, a factor that cannot be evaluated, ...
         result.status, result.message = LMStatus.STALLED, str(exc).strip().splitlines()[0]
+        result.values = last[0]
         if not history:
             history.append({"iteration": 0, "cost": math.nan, "seconds": 0.0})
         return result
@@ -237,12 +243,18 @@ def decrease_converged(cost: float, new_cost: float, absolute: float, relative: 
     return 0 <= decrease <= max(absolute, relative * cost)
 
 
+#: ``LevenbergMarquardtParams.minModelFidelity``'s default (not exposed to Python)
+GTSAM_MIN_MODEL_FIDELITY = 1e-3
+_EPS = float(np.finfo(float).eps)
+
+
 def levenberg_marquardt(
     graph: gtsam.NonlinearFactorGraph,
     initial: gtsam.Values,
     params: gtsam.LevenbergMarquardtParams | None = None,
     ordering: gtsam.Ordering | None = None,
-    on_iteration: Callable[[int, float], None] | None = None,
+    on_iteration: Callable[[int, float, gtsam.Values], None] | None = None,
+    gtsam_steps: bool = False,
 ) -> tuple[gtsam.Values, dict]:
     """Levenberg-Marquardt driven from Python, for graphs holding many ``CustomFactor`` s.
 
@@ -288,9 +300,20 @@ def levenberg_marquardt(
         ``lambdaLowerBound``, ``lambdaUpperBound`` are used; GTSAM's defaults if None.
     ordering : gtsam.Ordering or None
         Elimination ordering; None: COLAMD of the first linearisation.
-    on_iteration : callable(int, float) or None
-        Called with ``(0, initial error)`` and, after each accepted step, with
-        ``(iteration, error)`` (GTSAM's error: half the weighted sum of squares).
+    on_iteration : callable(int, float, gtsam.Values) or None
+        Called with ``(0, initial error, initial)`` and, after each accepted step, with
+        ``(iteration, error, values)`` (GTSAM's error: half the weighted sum of squares;
+        ``values`` the accepted state, not to be modified).
+    gtsam_steps : bool
+        Take and refuse steps exactly as ``gtsam.LevenbergMarquardtOptimizer`` does
+        (its ``tryLambda``; :func:`optimize` uses this): a step is accepted when the
+        predicted decrease is not negative and the model fidelity (actual over
+        predicted decrease) exceeds :data:`GTSAM_MIN_MODEL_FIDELITY`; when the cost
+        change of a trial is below ``relativeErrorTol`` of the cost, the iteration ends
+        without a step and the run has converged; the damping gives up when it reaches
+        ``lambdaUpperBound`` (stalled). Every iteration, with or without a step, is
+        reported to ``on_iteration``. Default (False): a step is accepted when it lowers
+        the cost, and a run without a lowering step before the upper bound is stalled.
 
     Returns
     -------
@@ -311,7 +334,7 @@ def levenberg_marquardt(
         error = graph.error(values)
     info = {"initial_error": error, "iteration_s": []}
     if on_iteration is not None:
-        on_iteration(0, error)
+        on_iteration(0, error, values)
     status = LMStatus.MAX_ITERATIONS
     lam = p.getlambdaInitial()
     zero = values.zeroVectors()
@@ -334,9 +357,9 @@ def levenberg_marquardt(
         if ordering is None:
             ordering = gtsam.Ordering.Colamd(gtsam.VariableIndex(lin))
         lin_zero_error = lin.error(zero)
-        accepted = False
+        accepted = negligible = False
         first_trial = True  # after a rejected step, evaluate the next trials' cost only
-        while lam <= p.getlambdaUpperBound():
+        while gtsam_steps or lam <= p.getlambdaUpperBound():
             sigma = 1.0 / math.sqrt(lam)
             sigmas: dict[int, np.ndarray] = {}
             for factor, d in damping_dims:
@@ -353,8 +376,35 @@ def levenberg_marquardt(
                 if "ndeterminate" not in str(exc):
                     raise
                 lam *= p.getlambdaFactor()
+                if gtsam_steps and lam >= p.getlambdaUpperBound():
+                    break
                 continue
             predicted = lin_zero_error - lin.error(delta)
+            if gtsam_steps:
+                # GTSAM's tryLambda: a valid step (predicted >= 0) is accepted when the
+                # model's fidelity exceeds its floor; a negligible cost change ends the
+                # search for a damping without a step
+                success = False
+                if predicted >= 0:
+                    trial = values.retract(delta)
+                    trial_passes = TrustedPass(trial, jacobians=first_trial)
+                    first_trial = False
+                    with trial_passes:
+                        trial_error = graph.error(trial)
+                    change = error - trial_error
+                    if predicted > _EPS * lin_zero_error:
+                        success = change / predicted > GTSAM_MIN_MODEL_FIDELITY
+                    negligible = abs(change) < p.getRelativeErrorTol() * error
+                if success:
+                    lam = max(lam / p.getlambdaFactor(), p.getlambdaLowerBound())
+                    accepted = True
+                    break
+                if negligible:
+                    break
+                lam *= p.getlambdaFactor()
+                if lam >= p.getlambdaUpperBound():
+                    break
+                continue
             trial = values.retract(delta)
             trial_passes = TrustedPass(trial, jacobians=first_trial)
             first_trial = False
@@ -367,12 +417,17 @@ def levenberg_marquardt(
             lam *= p.getlambdaFactor()
         info["iteration_s"].append(time.perf_counter() - t0)
         if not accepted:
-            status = LMStatus.STALLED  # as optimize(): the damping reached its upper bound
+            if gtsam_steps and on_iteration is not None:
+                # an iteration without a step
+                on_iteration(len(info["iteration_s"]), error, values)
+            # negligible: GTSAM's own convergence test then sees no decrease (converged);
+            # otherwise the damping reached its upper bound (stalled), as optimize() says
+            status = LMStatus.CONVERGED if negligible else LMStatus.STALLED
             break
         previous = error
         values, error, passes = trial, trial_error, trial_passes
         if on_iteration is not None:
-            on_iteration(len(info["iteration_s"]), error)
+            on_iteration(len(info["iteration_s"]), error, values)
         if (
             decrease_converged(previous, error, p.getAbsoluteErrorTol(), p.getRelativeErrorTol())
             or error < p.getErrorTol()
