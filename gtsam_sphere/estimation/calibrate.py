@@ -842,19 +842,25 @@ def readjust(
     say: Callable[[str], None],
     estimate_sigma: bool = True,
     values: gtsam.Values | None = None,
+    warm: bool = False,
 ) -> Adjustment:
     """Adjust ``problem`` again from ``adj``'s state (or ``values``), its first stage on
     the observations ``adj`` left within 5 sigma (after a pose repair, a new target
-    prior or fewer intrinsics)."""
+    prior or fewer intrinsics). ``warm``: the start is ``adj``'s converged robust
+    solution barely changed (terms the data do not support dropped): robust stages
+    from ``adj``'s scale, no least-squares stage (:func:`adjust`)."""
     consistent = np.linalg.norm(adj.residuals_px, axis=1) < 5.0 * adj.sigma_px
     start = gtsam.Values(adj.values) if values is None else values
+    if warm:
+        problem.noise = NoiseOptions(adj.sigma_px, problem.noise.loss, problem.noise.loss_threshold)
     return adjust(
         problem,
         start,
         optimizer,
         say,
         estimate_sigma=estimate_sigma,
-        first_stage_mask=consistent,
+        first_stage_mask=None if warm else consistent,
+        warm=warm,
     )
 
 
@@ -1073,7 +1079,9 @@ def select_terms(
         f"terms the data do not support (Wald test, BIC penalty): {', '.join(drop)}; "
         "adjusting without them"
     )
-    return reduced, readjust(reduced, adj, optimizer, say, estimate_sigma, values)
+    # warm: the dropped terms were indistinguishable from zero (the Wald test), so the
+    # start is next to the reduced model's solution
+    return reduced, readjust(reduced, adj, optimizer, say, estimate_sigma, values, warm=True)
 
 
 def distrust_reasons(calib: Calibration, cov_theta, options, problem: BundleProblem) -> list[str]:
