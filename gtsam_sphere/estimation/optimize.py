@@ -246,6 +246,8 @@ def decrease_converged(cost: float, new_cost: float, absolute: float, relative: 
 #: ``LevenbergMarquardtParams.minModelFidelity``'s default (not exposed to Python)
 GTSAM_MIN_MODEL_FIDELITY = 1e-3
 _EPS = float(np.finfo(float).eps)
+#: a predicted decrease below ``-_ROUNDING * cost`` is rounding, not an increase
+_ROUNDING = 64.0 * _EPS
 
 
 def levenberg_marquardt(
@@ -311,7 +313,10 @@ def levenberg_marquardt(
         predicted decrease) exceeds :data:`GTSAM_MIN_MODEL_FIDELITY`; when the cost
         change of a trial is below ``relativeErrorTol`` of the cost, the iteration ends
         without a step and the run has converged; the damping gives up when it reaches
-        ``lambdaUpperBound`` (stalled). Every iteration, with or without a step, is
+        ``lambdaUpperBound`` (stalled). One departure: a predicted decrease that is
+        negative only by rounding (``64 eps`` of the linearised cost; perfect data at
+        the noise floor) ends the run converged, where GTSAM would raise the damping
+        to its bound and stall. Every iteration, with or without a step, is
         reported to ``on_iteration``. Default (False): a step is accepted when it lowers
         the cost, and a run without a lowering step before the upper bound is stalled.
 
@@ -385,6 +390,12 @@ def levenberg_marquardt(
                 # model's fidelity exceeds its floor; a negligible cost change ends the
                 # search for a damping without a step
                 success = False
+                if predicted < 0 and -predicted <= _ROUNDING * lin_zero_error:
+                    # no decrease beyond rounding at any damping (perfect data at the
+                    # noise floor): converged, where GTSAM would raise lambda to its bound
+                    # and stall
+                    negligible = True
+                    break
                 if predicted >= 0:
                     trial = values.retract(delta)
                     trial_passes = TrustedPass(trial, jacobians=first_trial)
