@@ -8,9 +8,13 @@ from sklearn.utils.estimator_checks import parametrize_with_checks
 
 from gtsam_sphere.core.camera import SphereCamera
 from gtsam_sphere.estimation.correct import (
+    K_GRID,
+    WEIGHTS,
     KNNCorrection,
+    NeighbourSearches,
     consistent_with_neighbours,
     correction_from_dict,
+    train_correction,
 )
 from gtsam_sphere.io.calibration import camera_from_dict
 
@@ -207,3 +211,55 @@ def test_n_neighbors_none_is_cross_validation_and_zero_is_deprecated():
             KNNCorrection(n_neighbors=bad).fit(uv, y)
     with pytest.raises(ValueError, match="weights"):
         KNNCorrection(weights="gaussian").fit(uv, y)
+
+
+def test_memoised_neighbour_searches_give_the_same_training():
+    """The grey-box loop's rounds share their neighbour searches (NeighbourSearches): the
+    same pixels are searched once, and the training (folds, scores, predictions) is the
+    same number for number as with fresh searches, for new corrections and for a
+    different training set."""
+    rng = np.random.default_rng(3)
+    uv = rng.uniform(0, 800, (600, 2))
+    searches = NeighbourSearches()
+    for round_ in range(3):
+        target = np.column_stack([np.sin(uv[:, 0] / 90.0), np.cos(uv[:, 1] / 70.0)])
+        target += rng.normal(0, 0.05 * (round_ + 1), target.shape)
+        for degree in (0, None):
+            fresh = train_correction(uv, target, 0, degree)
+            shared = train_correction(uv, target, 0, degree, searches=searches)
+            assert fresh[0].cv_scores_ == shared[0].cv_scores_
+            np.testing.assert_array_equal(fresh[1], shared[1])
+            np.testing.assert_array_equal(fresh[2], shared[2])
+    # three kinds of search (consistency, folds, leave-one-out neighbours), per degree's k
+    assert searches.searches <= 6 and searches.hits >= 3 * 2 * 3 - searches.searches
+    subset = np.arange(len(uv)) % 7 != 0  # another training set: searched anew
+    before = searches.searches
+    fresh = train_correction(uv, target, 0, 0, subset)
+    shared = train_correction(uv, target, 0, 0, subset, searches)
+    assert searches.searches > before
+    np.testing.assert_array_equal(fresh[1], shared[1])
+
+
+def test_cross_validation_prefix_means_equal_local_fit():
+    """The cross-validation's plain means of every k (one cumulative sum per fold) are
+    local_fit's numbers exactly, for both weightings, with coinciding pixels (a zero
+    distance) among the training points."""
+    from sklearn.model_selection import KFold
+    from sklearn.neighbors import NearestNeighbors
+
+    from gtsam_sphere.core.correction_model import local_fit
+
+    rng = np.random.default_rng(8)
+    uv = rng.uniform(0, 500, (700, 2))
+    uv[650:] = uv[:50]  # duplicated pixels
+    y = _field(uv) + rng.normal(0, 0.1, uv.shape)
+    model = KNNCorrection(degree=None)
+    ks, ws = list(K_GRID), list(WEIGHTS)
+    scores = model._cross_validate(uv, y, ks, ws, [0, 1])
+    sse = dict.fromkeys(scores, 0.0)
+    for train, test in KFold(10, shuffle=True, random_state=0).split(uv):
+        dist, ind = NearestNeighbors().fit(uv[train]).kneighbors(uv[test], n_neighbors=max(ks))
+        for d, k, w in sse:
+            pred = local_fit(uv[train], y[train], uv[test], ind[:, :k], dist[:, :k], w, d)
+            sse[(d, k, w)] += float(np.sum((pred - y[test]) ** 2))
+    assert scores == {key: float(np.sqrt(v / len(uv))) for key, v in sse.items()}

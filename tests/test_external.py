@@ -27,6 +27,7 @@ from gtsam_sphere.estimation.external import (
     model_scale_px_per_rad,
 )
 from gtsam_sphere.estimation.graph import point_key, pose_key
+from gtsam_sphere.estimation.optimize import OptimizerOptions, make_ordering, optimize
 from gtsam_sphere.io.calibration import Calibration
 from gtsam_sphere.simulate.building import fisheye_camera, simulate_building
 
@@ -630,6 +631,52 @@ def test_levenberg_marquardt_status_means_what_optimize_means():
     _, info = levenberg_marquardt(graph, at_optimum)
     assert info["status"] is LMStatus.STALLED and not info["converged"]
     assert info["iterations"] == 1
+
+
+def test_optimize_lm_takes_gtsams_steps_with_the_given_ordering(small_scene):
+    """optimize() runs LM from Python (no copy of the Values per callback): with the same
+    elimination ordering it takes GTSAM's steps (same iterations, costs and state), from
+    a far start where steps are rejected, and reports one LMStatus."""
+    scene = small_scene
+    pk = np.array([pose_key(i) for i in scene.obs_image], np.uint64)
+    lk = np.array([point_key(j) for j in scene.obs_point], np.uint64)
+    noise = M.Robust.Create(M.mEstimator.Huber.Create(1.0), M.Isotropic.Sigma(2, 0.3))
+    graph = gtsam.NonlinearFactorGraph()
+    _gauge(scene, graph)
+    for f in ProjectionBlocks(scene.camera, scene.uv_px, pk, lk, noise).factors():
+        graph.add(f)
+    initial = perturbed_values(scene, 3, rot=0.1, trans=0.2, pts=0.5)
+    ordering = make_ordering(
+        [point_key(j) for j in range(scene.n_points)],
+        [pose_key(i) for i in range(scene.n_images)],
+        [],
+    )
+    options = OptimizerOptions(max_iterations=100)
+    ours = optimize(graph, initial, options, ordering)
+    params = gtsam.LevenbergMarquardtParams()
+    params.setOrdering(ordering)
+    params.setMaxIterations(100)
+    params.setRelativeErrorTol(options.relative_tolerance)
+    params.setAbsoluteErrorTol(options.absolute_tolerance)
+    ref = gtsam.LevenbergMarquardtOptimizer(graph, initial, params)
+    costs = [ref.error()]
+    for _ in range(len(ours.history) - 1):
+        ref.iterate()
+        costs.append(ref.error())
+    assert ours.status is LMStatus.CONVERGED and ours.converged and ours.message == ""
+    assert len(ours.history) > 3
+    np.testing.assert_allclose([h["cost"] for h in ours.history], costs, rtol=1e-12)
+    for i in range(scene.n_images):
+        d = ref.values().atPose3(pose_key(i)).localCoordinates(ours.values.atPose3(pose_key(i)))
+        assert np.linalg.norm(d) < 1e-10, (i, d)
+    capped = optimize(graph, initial, OptimizerOptions(max_iterations=2), ordering)
+    assert capped.status is LMStatus.MAX_ITERATIONS and len(capped.history) == 3
+    # from its own optimum: one more (negligible) step, GTSAM's, and converged
+    again = optimize(graph, ours.values, options, ordering)
+    ref = gtsam.LevenbergMarquardtOptimizer(graph, ours.values, params)
+    ref.iterate()
+    assert again.status is LMStatus.CONVERGED and len(again.history) == 2
+    assert again.history[1]["cost"] == pytest.approx(ref.error(), rel=1e-12)
 
 
 # ----------------------------------------------------------------------------- simulator, bench

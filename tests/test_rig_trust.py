@@ -63,8 +63,8 @@ def test_scale_from_redundant_observations_only():
 
 
 def test_problem_redundancy_matches_the_target_jacobians():
-    """``BundleProblem.target_jacobians`` (central differences through the blocks)
-    against the projection's derivative for the sphere model at the identity pose."""
+    """``BundleProblem.target_jacobians`` (analytic, from the factor engine) against the
+    projection's derivative for the sphere model at the identity pose."""
     import gtsam
 
     from gtsam_sphere.estimation.graph import INTRINSICS_KEY, point_key, pose_key
@@ -93,6 +93,71 @@ def test_problem_redundancy_matches_the_target_jacobians():
         np.testing.assert_allclose(J[j], expected, rtol=1e-5)
     red = problem.observation_redundancy(values, 0.3)
     assert np.all(red < 0.05)  # one view each, 1 cm priors at 2-3 m: absorbed
+
+
+@pytest.mark.parametrize("extrinsics", [False, True])
+def test_analytic_target_jacobians_match_central_differences(extrinsics):
+    """The engine's analytic target Jacobians equal the central differences they replaced
+    (six residual evaluations per robust stage), and so do the redundancy numbers: a
+    radial mapping with a warp, decentering and affinity, exact and free targets, seen
+    through rig extrinsics or not, with several targets per tile."""
+    import gtsam
+
+    from gtsam_sphere.estimation.graph import (
+        INTRINSICS_KEY,
+        extrinsics_key,
+        point_key,
+        pose_key,
+    )
+
+    rng = np.random.default_rng(5)
+    n_images, n_targets = 5, 14
+    xyz = rng.uniform([-1.5, -1.5, 2.0], [1.5, 1.5, 4.0], (n_targets, 3))
+    sigma = np.full(n_targets, 0.01)
+    sigma[:3] = 0.0  # exact: not variables, zero Jacobian
+    sigma[10:] = np.nan  # no prior
+    obs_image, obs_target = np.meshgrid(np.arange(n_images), np.arange(n_targets))
+    obs_image, obs_target = obs_image.ravel(), obs_target.ravel()
+    keep = rng.random(len(obs_image)) < 0.8
+    keep[obs_target == 13] = obs_image[obs_target == 13] == 2  # one target seen once
+    obs_image, obs_target = obs_image[keep], obs_target[keep]
+    ext_keys = np.array([extrinsics_key(0)] * 3 + [-1] * 2) if extrinsics else None
+    problem = BundleProblem(
+        obs_image=obs_image,
+        obs_target=obs_target,
+        uv_px=rng.normal(0.0, 300.0, (len(obs_image), 2)) + 640.0,
+        target_xyz=xyz,
+        target_sigma=sigma,
+        n_images=n_images,
+        brown_names=("p1", "p2", "a1", "a2"),
+        brown_scale_px=640.0,
+        radial_names=("g3", "g5"),
+        radial_warp=0.3,
+        points_per_factor=4,
+        image_extrinsic_keys=ext_keys,
+    )
+    problem.build()
+    values = gtsam.Values()
+    for i in range(n_images):
+        R = gtsam.Rot3.Expmap(rng.normal(0.0, 0.15, 3))
+        values.insert(pose_key(i), gtsam.Pose3(R, rng.normal(0.0, 0.3, 3)))
+    if extrinsics:
+        values.insert(extrinsics_key(0), gtsam.Pose3(gtsam.Rot3.Rz(0.1), np.r_[0.1, 0, 0]))
+    for j in problem.free_targets:
+        values.insert(point_key(int(j)), xyz[j] + rng.normal(0.0, 0.01, 3))
+    theta = np.array([640.0, 400.0, 500.0, 0.02, -0.01, 1e-3, -2e-3, 5e-4, 1e-3])
+    values.insert(INTRINSICS_KEY, theta)
+    J = problem.target_jacobians(values)
+    J_num = problem.target_jacobians_numerical(values)
+    assert np.abs(J).max() > 10.0
+    assert np.all(J[problem.fixed[obs_target]] == 0.0)
+    np.testing.assert_allclose(J, J_num, rtol=1e-6, atol=1e-6 * np.abs(J).max())
+    s = np.full(len(obs_image), 0.3)
+    red = observation_redundancy(J, obs_target, s, sigma)
+    red_num = observation_redundancy(J_num, obs_target, s, sigma)
+    np.testing.assert_allclose(red, red_num, rtol=0.0, atol=1e-8)
+    np.testing.assert_array_equal(red, problem.observation_redundancy(values, 0.3))
+    assert red.min() < 0.1 and red.max() > 1.0  # the once-seen target and the exact ones
 
 
 @pytest.mark.slow

@@ -9,8 +9,11 @@ loop of Chow et al. 2018) is ``estimation.correct``, which re-exports these name
 
 from __future__ import annotations
 
+import hashlib
 import numbers
 import warnings
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 from sklearn.base import BaseEstimator, RegressorMixin
@@ -47,6 +50,7 @@ def local_fit(
     weights: str = "uniform",
     degree: int = 0,
     mask: np.ndarray | None = None,
+    yn: np.ndarray | None = None,
 ) -> np.ndarray:
     """Prediction at ``Xq`` (M, 2) from the neighbours ``ind`` (M, k) of each query.
 
@@ -68,6 +72,8 @@ def local_fit(
         or the values change fast.
     mask : ndarray of bool, shape (M, k), optional
         Neighbours to use (weight 0 elsewhere).
+    yn : ndarray, shape (M, k, 2), optional
+        ``y[ind]``, when the caller has it already.
 
     Returns
     -------
@@ -76,7 +82,7 @@ def local_fit(
     w = _neighbour_weights(dist, weights)
     if mask is not None:
         w = w * mask
-    yn = y[ind]  # (M, k, 2)
+    yn = y[ind] if yn is None else yn  # (M, k, 2)
     sw = w.sum(1)
     sw = np.where(sw > 0, sw, 1.0)
     mean = (w[..., None] * yn).sum(1) / sw[:, None]
@@ -100,6 +106,24 @@ def local_fit(
     return np.where(exact[:, None], mean, coef[:, 0, :])
 
 
+def _prefix_means(yn: np.ndarray, dist: np.ndarray, weights: str) -> Callable[[int], np.ndarray]:
+    """``k -> local_fit(..., degree=0)`` of the first ``k`` of the neighbours ``yn``.
+
+    ``yn`` (M, K, 2) and ``dist`` (M, K), neighbours by increasing distance. The weighted
+    sums of every prefix come from one cumulative sum; it adds the neighbours in the
+    order ``local_fit``'s sum does, so each mean is the same number (a test checks it).
+    """
+    w = _neighbour_weights(dist, weights)  # a zero distance comes first: same per prefix
+    sums = np.cumsum(w[..., None] * yn, axis=1)
+
+    def mean(k: int) -> np.ndarray:
+        sw = w[:, :k].sum(1)
+        sw = np.where(sw > 0, sw, 1.0)
+        return sums[:, k - 1] / sw[:, None]
+
+    return mean
+
+
 def neighbours_without_self(nn, X: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
     """Distances and indices (N, k) of each training point's ``k`` nearest *other* points."""
     n = len(X)
@@ -110,6 +134,49 @@ def neighbours_without_self(nn, X: np.ndarray, k: int) -> tuple[np.ndarray, np.n
     keep = np.ones_like(ind, bool)
     keep[np.arange(n), drop] = False
     return dist[keep].reshape(n, n_q - 1), ind[keep].reshape(n, n_q - 1)
+
+
+class NeighbourSearches:
+    """Memo of nearest-neighbour searches, for the rounds of the grey-box loop.
+
+    The loop trains on the same raw pixels every round (only the corrections they need
+    change), so its searches (the cross-validation folds', each training point's other
+    neighbours, the consistency check's) are the same every round: each is done once
+    and served from here after. A search is keyed by a digest of its points and its
+    parameters, so a different training set is searched anew; the results are the
+    arrays scikit-learn returned (the same numbers as searching again).
+    """
+
+    def __init__(self) -> None:
+        self._memo: dict = {}
+        self.hits = 0
+        self.searches = 0
+
+    @staticmethod
+    def digest(*arrays: np.ndarray) -> bytes:
+        """SHA-256 of the arrays' shapes and bytes."""
+        h = hashlib.sha256()
+        for a in arrays:
+            a = np.ascontiguousarray(a)
+            h.update(repr((a.shape, a.dtype.str)).encode())
+            h.update(a.tobytes())
+        return h.digest()
+
+    def get(self, key: tuple, search: Callable[[], Any]) -> Any:
+        """The memoised result of ``search()`` under ``key`` (computed on first use)."""
+        if key in self._memo:
+            self.hits += 1
+        else:
+            self.searches += 1
+            self._memo[key] = search()
+        return self._memo[key]
+
+
+def memoised_search(
+    searches: NeighbourSearches | None, key: tuple, search: Callable[[], Any]
+) -> Any:
+    """``search()``, through ``searches`` (:class:`NeighbourSearches`) when one is given."""
+    return search() if searches is None else searches.get(key, search)
 
 
 class KNNCorrection(RegressorMixin, BaseEstimator):
@@ -175,7 +242,7 @@ class KNNCorrection(RegressorMixin, BaseEstimator):
         self.random_state = random_state
         self.degree = degree
 
-    def fit(self, uv_px, corrections_px):
+    def fit(self, uv_px, corrections_px, searches: NeighbourSearches | None = None):
         """Fit on raw pixels and their corrections.
 
         Parameters
@@ -184,6 +251,9 @@ class KNNCorrection(RegressorMixin, BaseEstimator):
             Raw pixels.
         corrections_px : array_like, shape (N, 2)
             Corrections (px) at those pixels.
+        searches : NeighbourSearches, optional
+            Memo of the cross-validation's neighbour searches (the grey-box loop's
+            rounds train on the same pixels); the fit is the same with or without.
 
         Returns
         -------
@@ -208,7 +278,7 @@ class KNNCorrection(RegressorMixin, BaseEstimator):
         degrees = list(DEGREES) if self.degree is None else [self.degree]
         if not ks:
             raise ValueError(f"too few training points ({len(X)}) for kNN")
-        scores = self._cross_validate(X, y, ks, ws, degrees)
+        scores = self._cross_validate(X, y, ks, ws, degrees, searches)
         # the first best in (degree, k, weights) order: the simplest model wins a tie
         best = min(scores, key=scores.get)
         self.n_features_in_ = X.shape[1]
@@ -247,17 +317,40 @@ class KNNCorrection(RegressorMixin, BaseEstimator):
             return None
         return int(k)
 
-    def _cross_validate(self, X, y, ks, ws, degrees) -> dict:
-        """Pooled ``cv_folds``-fold RMS (px, per point) of every candidate."""
-        folds = KFold(min(self.cv_folds, len(X)), shuffle=True, random_state=self.random_state)
+    def _cross_validate(self, X, y, ks, ws, degrees, searches=None) -> dict:
+        """Pooled ``cv_folds``-fold RMS (px, per point) of every candidate.
+
+        One neighbour search per fold (``max(ks)`` neighbours) serves every candidate,
+        the neighbours' values are gathered once per fold, and the plain means
+        (``degree`` 0) of every ``k`` come from one cumulative sum
+        (:func:`_prefix_means`).
+        """
+        n_splits = min(self.cv_folds, len(X))
+        k_max = min(max(ks), len(X))
+
+        def fold_searches():
+            folds = KFold(n_splits, shuffle=True, random_state=self.random_state)
+            out = []
+            for train, test in folds.split(X):
+                nn = NearestNeighbors().fit(X[train])
+                dist, ind = nn.kneighbors(X[test], n_neighbors=min(k_max, len(train)))
+                out.append((train, test, dist, ind))
+            return out
+
+        key = ("cv", NeighbourSearches.digest(X), n_splits, self.random_state, k_max)
         sse = {(d, k, w): 0.0 for d in degrees for k in ks for w in ws}
-        for train, test in folds.split(X):
-            nn = NearestNeighbors().fit(X[train])
-            k_max = min(max(ks), len(train))
-            dist, ind = nn.kneighbors(X[test], n_neighbors=k_max)
+        for train, test, dist, ind in memoised_search(searches, key, fold_searches):
+            k_fold = ind.shape[1]
+            yn = y[train][ind]  # (M, k_fold, 2): every candidate's neighbours' values
+            means = {w: _prefix_means(yn, dist, w) for w in ws} if 0 in degrees else {}
             for d, k, w in sse:
-                kk = min(k, k_max)
-                pred = local_fit(X[train], y[train], X[test], ind[:, :kk], dist[:, :kk], w, d)
+                kk = min(k, k_fold)
+                if d == 0:
+                    pred = means[w](kk)
+                else:
+                    pred = local_fit(
+                        X[train], y[train], X[test], ind[:, :kk], dist[:, :kk], w, d, yn=yn[:, :kk]
+                    )
                 sse[(d, k, w)] += float(np.sum((pred - y[test]) ** 2))
         return {key: float(np.sqrt(v / len(X))) for key, v in sse.items()}
 
@@ -284,7 +377,7 @@ class KNNCorrection(RegressorMixin, BaseEstimator):
             self.uv_px_, self.corrections_px_, X, ind, dist, self.weights_, self.degree_
         )
 
-    def predict_without_self(self) -> np.ndarray:
+    def predict_without_self(self, searches: NeighbourSearches | None = None) -> np.ndarray:
         """Leave-one-out corrections at the training pixels, (N, 2) px.
 
         Each training point's prediction from its ``k`` nearest *other*
@@ -292,11 +385,15 @@ class KNNCorrection(RegressorMixin, BaseEstimator):
         would otherwise dominate its prediction (zero distance), and with
         ``"uniform"`` it would leak in with weight ``1/k``: the adjustment
         would then fit its own noise and the in-sample statistics would be
-        optimistic.
+        optimistic. ``searches`` (:class:`NeighbourSearches`) memoises the search.
         """
         check_is_fitted(self)
         X, y = self.uv_px_, self.corrections_px_
-        dist, ind = neighbours_without_self(self.regressor_, X, self.n_neighbors_)
+        dist, ind = memoised_search(
+            searches,
+            ("without_self", NeighbourSearches.digest(X), self.n_neighbors_),
+            lambda: neighbours_without_self(self.regressor_, X, self.n_neighbors_),
+        )
         return local_fit(X, y, X, ind, dist, self.weights_, self.degree_)
 
     def to_dict(self) -> dict:

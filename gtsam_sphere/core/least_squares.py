@@ -39,6 +39,9 @@ class LMStatus(StrEnum):
     STALLED = "stalled"
     #: the iteration limit was reached, every iteration having moved the point
     MAX_ITERATIONS = "max_iterations"
+    #: the cost grew past any reason or stopped being finite (the graph optimiser's
+    #: dogleg, ``estimation.optimize``; this loop never accepts an increase)
+    DIVERGED = "diverged"
 
 
 def marquardt_scaling(H: np.ndarray) -> np.ndarray:

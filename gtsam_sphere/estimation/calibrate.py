@@ -201,6 +201,7 @@ def adjust(
     label: str = "",
     max_stages: int = 6,
     first_stage_mask: np.ndarray | None = None,
+    warm: bool = False,
 ) -> Adjustment:
     """Robust adjustment, optionally estimating ``sigma_px`` from the residuals.
 
@@ -216,6 +217,12 @@ def adjust(
     observations the initialisation's RANSAC found consistent, so blunders
     cannot pull it (the robust stages then see every observation).
 
+    ``warm``: ``values`` is a converged robust adjustment of this problem with a
+    slightly changed measurement (a kNN round's new corrections), and
+    ``problem.noise.sigma_px`` its scale. There is then no poor start for a first
+    least-squares stage to protect: the robust stages start from that scale, and stop
+    as soon as it changes by less than 5% (one stage, usually).
+
     Returns
     -------
     Adjustment
@@ -225,7 +232,7 @@ def adjust(
         [pose_key(int(i)) for i in np.unique(problem.obs_image)],
         [INTRINSICS_KEY],
     )
-    if estimate_sigma:
+    if estimate_sigma and not warm:
         # graduated robustness: start from the scale of the initial residuals, so a poor
         # start is not frozen by tiny robust weights, then shrink to the estimated noise
         problem.build()
@@ -242,7 +249,7 @@ def adjust(
     for stage in range(1, max_stages + 1):
         # stage 1 in plain least squares: robust weights computed at a poor start can hold
         # a wrong minimum (observed with a 300 deg lens); later stages are robust
-        first_l2 = estimate_sigma and stage == 1 and len(problem.uv_px) > 0
+        first_l2 = estimate_sigma and not warm and stage == 1 and len(problem.uv_px) > 0
         problem.noise = NoiseOptions(
             problem.noise.sigma_px, Loss.L2 if first_l2 else loss, problem.noise.loss_threshold
         )
@@ -284,7 +291,7 @@ def adjust(
         if progress:
             progress(f"{label}robust scale estimate sigma = {sigma:.4f} px (was {old:.4f})")
         problem.noise = NoiseOptions(sigma, loss, problem.noise.loss_threshold)
-        if abs(sigma - old) <= 0.05 * old and stage > 1:
+        if abs(sigma - old) <= 0.05 * old and (stage > 1 or warm):
             break
     if estimate_sigma and loss is Loss.HUBER:
         # Huber bounds a blunder's influence but does not remove it: with gross outliers
@@ -835,19 +842,25 @@ def readjust(
     say: Callable[[str], None],
     estimate_sigma: bool = True,
     values: gtsam.Values | None = None,
+    warm: bool = False,
 ) -> Adjustment:
     """Adjust ``problem`` again from ``adj``'s state (or ``values``), its first stage on
     the observations ``adj`` left within 5 sigma (after a pose repair, a new target
-    prior or fewer intrinsics)."""
+    prior or fewer intrinsics). ``warm``: the start is ``adj``'s converged robust
+    solution barely changed (terms the data do not support dropped): robust stages
+    from ``adj``'s scale, no least-squares stage (:func:`adjust`)."""
     consistent = np.linalg.norm(adj.residuals_px, axis=1) < 5.0 * adj.sigma_px
     start = gtsam.Values(adj.values) if values is None else values
+    if warm:
+        problem.noise = NoiseOptions(adj.sigma_px, problem.noise.loss, problem.noise.loss_threshold)
     return adjust(
         problem,
         start,
         optimizer,
         say,
         estimate_sigma=estimate_sigma,
-        first_stage_mask=consistent,
+        first_stage_mask=None if warm else consistent,
+        warm=warm,
     )
 
 
@@ -1098,7 +1111,9 @@ def select_terms(
         f"terms the data do not support (Wald test, BIC penalty): {', '.join(drop)}; "
         "adjusting without them"
     )
-    return reduced, readjust(reduced, adj, optimizer, say, estimate_sigma, values)
+    # warm: the dropped terms were indistinguishable from zero (the Wald test), so the
+    # start is next to the reduced model's solution
+    return reduced, readjust(reduced, adj, optimizer, say, estimate_sigma, values, warm=True)
 
 
 def distrust_reasons(calib: Calibration, cov_theta, options, problem: BundleProblem) -> list[str]:
@@ -1112,7 +1127,8 @@ def distrust_reasons(calib: Calibration, cov_theta, options, problem: BundleProb
     st = calib.statistics
     out = []
     if not st["converged"]:
-        out.append(f"the optimiser did not converge ({st['status']})")
+        detail = f": {st['status_message']}" if st.get("status_message") else ""
+        out.append(f"the optimiser did not converge ({st['status']}{detail})")
     if options.covariance and problem.fixed_intrinsics is None and cov_theta is None:
         out.append("the normal equations are singular: some intrinsics are not determined")
     cam = calib.camera
@@ -1283,10 +1299,12 @@ def _result(dataset, problem, adj, correction, history, options, n_input_images)
         "fov_deg": float(2 * np.max(inc)),
         "n_beyond_90deg": int(np.sum(inc > 90.0)),
         "iterations": int(history[-1]["iteration"]),
-        "status": adj.result.status,
+        "status": str(adj.result.status.value),
         "converged": bool(adj.result.converged),
         "datum": problem.datum.value,
     }
+    if adj.result.message:
+        statistics["status_message"] = adj.result.message
     weighted = problem.free_targets[
         np.isfinite(problem.target_sigma[problem.free_targets])
         & (problem.target_sigma[problem.free_targets] > 0)

@@ -18,8 +18,10 @@ from ..core.correction_model import DEGREES as DEGREES
 from ..core.correction_model import K_GRID as K_GRID
 from ..core.correction_model import WEIGHTS as WEIGHTS
 from ..core.correction_model import KNNCorrection as KNNCorrection
+from ..core.correction_model import NeighbourSearches as NeighbourSearches
 from ..core.correction_model import correction_from_dict as correction_from_dict
 from ..core.correction_model import local_fit as local_fit
+from ..core.correction_model import memoised_search as memoised_search
 from ..core.correction_model import neighbours_without_self as neighbours_without_self
 from ..core.robust import robust_sigma_px
 
@@ -38,7 +40,12 @@ def _rms(residuals_px: np.ndarray, mask: np.ndarray) -> float:
 
 
 def consistent_with_neighbours(
-    uv_px: np.ndarray, target_px: np.ndarray, k: int = 12, threshold: float = 5.0, passes: int = 3
+    uv_px: np.ndarray,
+    target_px: np.ndarray,
+    k: int = 12,
+    threshold: float = 5.0,
+    passes: int = 3,
+    searches: NeighbourSearches | None = None,
 ) -> np.ndarray:
     """Observations whose target agrees with their image neighbours', (N,) bool.
 
@@ -65,6 +72,8 @@ def consistent_with_neighbours(
         Rejection threshold in robust sigmas.
     passes : int
         Rejection passes.
+    searches : NeighbourSearches, optional
+        Memo of the neighbour search (the same pixels every round of the loop).
 
     Returns
     -------
@@ -73,8 +82,11 @@ def consistent_with_neighbours(
     n = len(uv_px)
     if n <= k + 3:
         return np.ones(n, bool)
-    nn = NearestNeighbors().fit(uv_px)
-    dist, ind = neighbours_without_self(nn, uv_px, k)
+    dist, ind = memoised_search(
+        searches,
+        ("consistent", NeighbourSearches.digest(uv_px), k),
+        lambda: neighbours_without_self(NearestNeighbors().fit(uv_px), uv_px, k),
+    )
     good = np.ones(n, bool)
     for _ in range(passes):
         pred = local_fit(uv_px, target_px, uv_px, ind, dist, "uniform", 1, good[ind])
@@ -84,7 +96,12 @@ def consistent_with_neighbours(
 
 
 def train_correction(
-    uv_px: np.ndarray, target_px: np.ndarray, seed: int, degree: int | None, train=None
+    uv_px: np.ndarray,
+    target_px: np.ndarray,
+    seed: int,
+    degree: int | None,
+    train=None,
+    searches: NeighbourSearches | None = None,
 ) -> tuple[KNNCorrection, np.ndarray, np.ndarray]:
     """One training step of the grey-box loop: fit the kNN field, predict every
     observation's correction (the training observations without themselves).
@@ -101,6 +118,8 @@ def train_correction(
     train : ndarray of bool, shape (N,), optional
         The training set; default the observations consistent with their neighbours
         (:func:`consistent_with_neighbours`).
+    searches : NeighbourSearches, optional
+        Memo of the neighbour searches, shared by the rounds of :func:`grey_box_loop`.
 
     Returns
     -------
@@ -109,11 +128,12 @@ def train_correction(
     train : ndarray of bool, shape (N,)
     """
     if train is None:
-        train = consistent_with_neighbours(uv_px, target_px)
+        train = consistent_with_neighbours(uv_px, target_px, searches=searches)
     model = KNNCorrection(random_state=seed, degree=degree)
-    model.fit(uv_px[train], target_px[train])
+    model.fit(uv_px[train], target_px[train], searches=searches)
     corrections = model.predict(uv_px)
-    corrections[train] = model.predict_without_self()  # no observation corrects itself
+    # no observation corrects itself
+    corrections[train] = model.predict_without_self(searches)
     return model, corrections, train
 
 
@@ -168,23 +188,24 @@ def grey_box_loop(problem, adj, optimizer, options, say: Callable[[str], None], 
     best = (rms, adj, None, problem.corrections_px.copy())
     prev_cv = None
     say(f"kNN round 0: RMS {rms:.4f} px within 5 sigma (no correction)")
+    searches = NeighbourSearches()  # the rounds search the same pixels
     for rnd in range(1, int(cfg["max_rounds"]) + 1):
         target = problem.corrections_px + adj.residuals_px
         train = adj.weights >= 0.5 if cfg["train"] == "weights" else None
         model, corrections, train = train_correction(
-            problem.uv_px, target, options.seed, cfg["degree"], train
+            problem.uv_px, target, options.seed, cfg["degree"], train, searches
         )
         prev_rms = _rms(adj.residuals_px, train)
         problem.corrections_px = corrections
-        # the first (least-squares) stage leaves out the previous round's outliers
-        consistent = np.linalg.norm(adj.residuals_px, axis=1) < 5.0 * adj.sigma_px
-        adj = adjust(  # a sigma the user gave (--sigma-px) stays fixed, as in the first stages
+        # a warm start: the robust stages go on from the previous round's solution and
+        # scale (no least-squares stage; a sigma the user gave (--sigma-px) stays fixed)
+        adj = adjust(
             problem,
             adj.values,
             optimizer,
             None,
             estimate_sigma=options.sigma_px is None,
-            first_stage_mask=consistent,
+            warm=True,
         )
         rms_train = _rms(adj.residuals_px, train)
         rms = _inlier_rms(adj)

@@ -447,6 +447,8 @@ class ProjectionModel:
         self.key_order = tuple(order)
         self.fixed_xyz = None if fixed_xyz is None else np.asarray(fixed_xyz, float).T.copy()
         self.columns = 9 + self.n_theta + (6 if extrinsics else 0)
+        #: the Jacobian's columns of the world point (:meth:`jacobian`)
+        self.point_columns = slice(6, 9)
 
     def residual(self, tables, index, rows, jacobians: bool):
         """Residuals (m, 2) px of observations ``rows`` and what :meth:`jacobian` needs.
@@ -795,6 +797,24 @@ class FactorEngine:
         tables = [kind.read(values, keys) for kind, keys in zip(self.kinds, self.keys)]
         e, _ = self.model.residual(tables, self.obs, slice(None), False)
         return e
+
+    def jacobians_px(self, values: gtsam.Values) -> tuple[np.ndarray, np.ndarray]:
+        """Unweighted residuals and their Jacobian at ``values``, every block, engine order.
+
+        The same evaluation as a linearisation's, without the whitening and robust
+        weights (not cached).
+
+        Returns
+        -------
+        e_px : ndarray, shape (n, 2)
+            ``measured - predicted`` (px).
+        J : ndarray, shape (2, columns, n)
+            ``d e / d x`` (px per unit of ``x``): rows ``u``, ``v``; columns as the
+            model's :meth:`jacobian` lays them out; observation last.
+        """
+        tables = [kind.read(values, keys) for kind, keys in zip(self.kinds, self.keys)]
+        e, ctx = self.model.residual(tables, self.obs, slice(None), True)
+        return e, self.model.jacobian(ctx, np.ones(len(e)))
 
     # ---------------------------------------------------------------- callbacks
 

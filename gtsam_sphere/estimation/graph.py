@@ -24,6 +24,7 @@ corrections means building new blocks, which costs milliseconds
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass, field
 
 import gtsam
@@ -354,6 +355,10 @@ def choose_minimal_constraint_points(xyz: np.ndarray) -> tuple[int, int, int]:
 
 #: images per observation block of free targets (see :func:`_tile_observations`)
 IMAGES_PER_FACTOR = 8
+#: the blocks' observations and variables by a digest of what they depend on
+#: (:meth:`BundleProblem._structure`), oldest first
+_STRUCTURES: dict[bytes, tuple[list, list]] = {}
+_STRUCTURES_KEPT = 8
 
 
 def _group_targets(seen: list[np.ndarray], n_images: int, size: int) -> list[list[int]]:
@@ -563,8 +568,60 @@ class BundleProblem:
         Exact control: one block per image (its variables are the pose and the
         intrinsics, so nothing is zero-padded). Free targets: tiles of
         :func:`_tile_observations`, at most ``points_per_factor`` targets by
-        ``IMAGES_PER_FACTOR`` images.
+        ``IMAGES_PER_FACTOR`` images. Cached (:meth:`_structure`).
         """
+        return [g.copy() for g in self._structure()[0]]
+
+    def _structure(self) -> tuple[list[np.ndarray], list[tuple]]:
+        """The blocks' observations (:meth:`_tile_groups`) and variables (:meth:`_layout`).
+
+        Both depend only on which target each image sees, the fixed targets, the image
+        keys and ``points_per_factor``: a problem rebuilt for a new noise scale, loss or
+        correction (every robust stage, every kNN round), or a copy of it with other
+        intrinsics or target sigmas (``dataclasses.replace``), reuses them. They are kept
+        by a digest of those inputs, the last :data:`_STRUCTURES_KEPT`.
+        """
+        image_pose, image_ext = self.image_keys()
+        fingerprint = hashlib.sha256(
+            b"".join(
+                np.ascontiguousarray(a).tobytes()
+                for a in (self.obs_image, self.obs_target, self.fixed, image_pose, image_ext)
+            )
+            + str(int(self.points_per_factor)).encode()
+        ).digest()
+        cached = _STRUCTURES.get(fingerprint)
+        if cached is None:
+            groups = self._tile_groups()
+            cached = (groups, self._layout(groups, image_pose, image_ext))
+            while len(_STRUCTURES) >= _STRUCTURES_KEPT:
+                del _STRUCTURES[next(iter(_STRUCTURES))]  # the oldest
+            _STRUCTURES[fingerprint] = cached
+        return cached
+
+    def _layout(self, groups, image_pose: np.ndarray, image_ext: np.ndarray) -> list[tuple]:
+        """Per block: pose keys, point keys, their local indices, extrinsic keys and
+        local indices, and the target of each observation."""
+        out = []
+        for idx in groups:
+            obs_pose = image_pose[self.obs_image[idx]]
+            obs_ext = image_ext[self.obs_image[idx]]
+            poses = np.unique(obs_pose)
+            exts = np.unique(obs_ext[obs_ext >= 0])
+            ext_local = np.where(obs_ext >= 0, np.searchsorted(exts, obs_ext), -1)
+            tgt = self.obs_target[idx]
+            free = ~self.fixed[tgt]
+            points = np.unique(tgt[free])
+            point_local = np.full(len(idx), -1)
+            point_local[free] = np.searchsorted(points, tgt[free])
+            pose_local = np.searchsorted(poses, obs_pose)
+            point_keys = [point_key(t) for t in points]
+            out.append(
+                (poses.tolist(), point_keys, pose_local, point_local, exts.tolist(), ext_local, tgt)
+            )
+        return out
+
+    def _tile_groups(self) -> list[np.ndarray]:
+        """:meth:`_groups` computed (not cached)."""
         fixed_obs = self.fixed[self.obs_target]
         groups = [
             np.flatnonzero(fixed_obs & (self.obs_image == i))
@@ -591,24 +648,16 @@ class BundleProblem:
 
     def _make_blocks(self) -> list[ObservationBlock]:
         uv = self.corrected_uv_px
-        image_pose, image_ext = self.image_keys()
+        groups, layout = self._structure()
         blocks = []
-        for idx in self.block_obs:
-            obs_pose = image_pose[self.obs_image[idx]]
-            obs_ext = image_ext[self.obs_image[idx]]
-            poses = np.unique(obs_pose)
-            exts = np.unique(obs_ext[obs_ext >= 0])
-            ext_local = np.where(obs_ext >= 0, np.searchsorted(exts, obs_ext), -1)
-            tgt = self.obs_target[idx]
-            free = ~self.fixed[tgt]
-            points = np.unique(tgt[free])
-            point_local = np.full(len(idx), -1)
-            point_local[free] = np.searchsorted(points, tgt[free])
+        for idx, (poses, points, pose_local, point_local, exts, ext_local, tgt) in zip(
+            groups, layout
+        ):
             blocks.append(
                 ObservationBlock(
-                    poses.tolist(),
-                    [point_key(t) for t in points],
-                    np.searchsorted(poses, obs_pose),
+                    poses,
+                    points,
+                    pose_local,
                     point_local,
                     self.target_xyz[tgt],
                     uv[idx],
@@ -616,7 +665,7 @@ class BundleProblem:
                     self.brown_scale_px,
                     self.noise,
                     self.radial_names,
-                    exts.tolist(),
+                    exts,
                     ext_local,
                     self.intrinsics_key,
                     radial_warp=self.radial_warp,
@@ -687,9 +736,25 @@ class BundleProblem:
     def target_jacobians(self, values: gtsam.Values) -> np.ndarray:
         """Derivative of each observation's predicted pixel by its target, (N, 2, 3).
 
-        Central differences (step ``1e-6`` of the free targets' extent, every free
-        target moved at once: an observation sees one target) in px per dataset unit;
-        zero for exact targets (not variables). The blocks must be built.
+        Analytic, from the factor engine's Jacobian (the world-point columns of
+        :meth:`~gtsam_sphere.estimation.engine.ProjectionModel.jacobian`, unweighted), in
+        px per dataset unit; zero for exact targets (not variables). The blocks must be
+        built. :meth:`target_jacobians_numerical` is the central-difference reference.
+        """
+        J = np.zeros((len(self.uv_px), 2, 3))
+        if len(self.free_targets) == 0 or not self.blocks:
+            return J
+        engine, _ = self.blocks[0].engine()
+        _, J_e = engine.jacobians_px(values)  # d(measured - predicted) / dx
+        J[np.concatenate(self.block_obs)] = -J_e[:, engine.model.point_columns].transpose(2, 0, 1)
+        J[self.fixed[self.obs_target]] = 0.0
+        return np.nan_to_num(J)
+
+    def target_jacobians_numerical(self, values: gtsam.Values) -> np.ndarray:
+        """:meth:`target_jacobians` by central differences (the reference of the tests).
+
+        Step ``1e-6`` of the free targets' extent, every free target moved at once (an
+        observation sees one target): six evaluations of the residuals.
         """
         J = np.zeros((len(self.uv_px), 2, 3))
         free = self.free_targets

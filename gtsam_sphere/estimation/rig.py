@@ -712,7 +712,7 @@ def assemble_rig(
         for reason in calibs[cid].statistics.get("distrust", [])
     ]
     if jr is not None and not jr.result.converged:
-        distrust.append(f"the joint rig adjustment did not converge ({jr.result.status})")
+        distrust.append(f"the joint rig adjustment did not converge ({jr.result.describe()})")
     if (
         jr is not None
         and fixed_extrinsics is None
@@ -753,7 +753,7 @@ def assemble_rig(
     }
     if jr is not None:
         statistics["joint"] = {
-            "status": jr.result.status,
+            "status": str(jr.result.status.value),
             "converged": bool(jr.result.converged),
             "iterations": int(jr.result.history[-1]["iteration"]),
             "stages": jr.stages,
