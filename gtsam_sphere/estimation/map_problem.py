@@ -393,6 +393,23 @@ class RefineResult:
     iteration_s: list = field(default_factory=list)
     stats: dict = field(default_factory=dict)
 
+    @classmethod
+    def from_run(cls, R, t, points, info: dict, stats: dict) -> RefineResult:
+        """The result of a run: poses ``R`` (M, 3, 3), ``t`` (M, 3) world_from_cam (m),
+        ``points`` (L, 3) world (m), and the LM's ``info`` (``initial_error``, ``error``,
+        ``iterations``, ``status``, ``iteration_s``)."""
+        return cls(
+            world_from_cam_R=R,
+            world_from_cam_t=t,
+            points_world=points,
+            initial_error=float(info["initial_error"]),
+            error=float(info["error"]),
+            iterations=int(info["iterations"]),
+            status=info["status"],
+            iteration_s=list(info["iteration_s"]),
+            stats=stats,
+        )
+
     @property
     def converged(self) -> bool:
         """True when the optimiser's convergence test passed."""
@@ -429,17 +446,7 @@ def refine_global(
         built.graph, problem.initial_values(), lm_params(max_iterations, relative_tolerance)
     )
     R, t, P = arrays_from_values(values, problem.pose_keys(), problem.point_keys())
-    return RefineResult(
-        world_from_cam_R=R,
-        world_from_cam_t=t,
-        points_world=P,
-        initial_error=float(info["initial_error"]),
-        error=float(info["error"]),
-        iterations=int(info["iterations"]),
-        status=info["status"],
-        iteration_s=list(info["iteration_s"]),
-        stats={"engine": "local", "partitions": 1},
-    )
+    return RefineResult.from_run(R, t, P, info, {"engine": "local", "partitions": 1})
 
 
 def map_problem_from_dataset(

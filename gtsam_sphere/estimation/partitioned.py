@@ -752,16 +752,12 @@ def refine_map(
         submaps, sep, executor_factory, options, progress, on_iteration
     )
     R, t, P = assemble(problem.image_ids, problem.point_ids, submaps, states)
-    return RefineResult(
-        world_from_cam_R=R,
-        world_from_cam_t=t,
-        points_world=P,
-        initial_error=float(info["initial_error"]),
-        error=float(info["error"]),
-        iterations=int(info["iterations"]),
-        status=info["status"],
-        iteration_s=list(info["iteration_s"]),
-        stats={
+    return RefineResult.from_run(
+        R,
+        t,
+        P,
+        info,
+        {
             "partitions": n_parts,
             "separator_dim": int(info["separator_dim"]),
             "separator_keys": len(sep),
