@@ -283,6 +283,30 @@ def _trajectory(opts: BuildingOptions, n_rooms: int, rng: np.random.Generator):
     return R, np.column_stack([x, y, z]), room
 
 
+def _landmarks_per_room(camera, R, t, room_of_image, opts, half_fov, rng) -> int:
+    """Landmarks per room for ``opts.obs_per_image``: from the fraction of a pilot room's
+    landmarks (2,000, drawn from ``rng``) that the first room's images see."""
+    pilot = _room_landmarks(opts, 2000, rng)
+    first = np.flatnonzero(room_of_image == 0)
+    pc = np.einsum("mji,mnj->mni", R[first], pilot[None] - t[first, None])
+    seen, _ = _visible(camera, pc.reshape(-1, 3), opts, half_fov)
+    return max(4, int(round(opts.obs_per_image / max(float(seen.mean()), 1e-3))))
+
+
+def _room_observations(camera, R, t, pw, opts, half_fov):
+    """What images ``R`` (K, 3, 3), ``t`` (K, 3) (world_from_cam, m) see of a room's
+    landmarks ``pw`` (L, 3): ``used`` (L,) the landmarks seen ``min_track`` times or more,
+    ``ii, jj`` (N,) image and landmark of each observation (image-major: trajectory
+    order, then landmark) and their noise-free pixels ``uv`` (N, 2)."""
+    pc = np.einsum("mji,mnj->mni", R, pw[None] - t[:, None]).reshape(-1, 3)
+    ok, uv = _visible(camera, pc, opts, half_fov)
+    ok = ok.reshape(len(R), len(pw))
+    used = ok.sum(0) >= max(opts.min_track, 1)
+    ok &= used
+    ii, jj = np.nonzero(ok)
+    return used, ii, jj, uv.reshape(len(R), len(pw), 2)[ii, jj]
+
+
 def _room_landmarks(opts: BuildingOptions, n: int, rng: np.random.Generator) -> np.ndarray:
     """``n`` landmarks on the surfaces of the room at the origin (X in [0, L]), (n, 3) m."""
     L, W, H = opts.room_size_m
@@ -349,13 +373,7 @@ def simulate_building(options: BuildingOptions | None = None, **overrides) -> Bu
     R, t, room_of_image = _trajectory(opts, n_rooms, rng)
     length = opts.room_size_m[0]
 
-    # pilot: fraction of a room's landmarks one image sees -> landmarks per room
-    pilot = _room_landmarks(opts, 2000, rng)
-    first = np.flatnonzero(room_of_image == 0)
-    pc = np.einsum("mji,mnj->mni", R[first], pilot[None] - t[first, None])
-    seen, _ = _visible(camera, pc.reshape(-1, 3), opts, half_fov)
-    frac = max(float(seen.mean()), 1e-3)
-    per_room = max(4, int(round(opts.obs_per_image / frac)))
+    per_room = _landmarks_per_room(camera, R, t, room_of_image, opts, half_fov, rng)
 
     pts_all, img_all, pt_all, uv_all = [], [], [], []
     n_pts = 0
@@ -364,16 +382,11 @@ def simulate_building(options: BuildingOptions | None = None, **overrides) -> Bu
         if len(imgs) == 0:
             continue
         pw = _room_landmarks(opts, per_room, rng) + np.array([r * length, 0.0, 0.0])
-        pc = np.einsum("mji,mnj->mni", R[imgs], pw[None] - t[imgs, None]).reshape(-1, 3)
-        ok, uv = _visible(camera, pc, opts, half_fov)
-        ok = ok.reshape(len(imgs), len(pw))
-        used = ok.sum(0) >= max(opts.min_track, 1)
-        ok &= used
+        used, ii, jj, uv = _room_observations(camera, R[imgs], t[imgs], pw, opts, half_fov)
         new_index = np.cumsum(used) - 1 + n_pts
-        ii, jj = np.nonzero(ok)  # image-major: trajectory order, then landmark
         img_all.append(imgs[ii])
         pt_all.append(new_index[jj])
-        uv_all.append(uv.reshape(len(imgs), len(pw), 2)[ii, jj])
+        uv_all.append(uv)
         pts_all.append(pw[used])
         n_pts += int(used.sum())
     points = np.concatenate(pts_all)
@@ -595,11 +608,7 @@ class BuildingPart:
         total_rooms = max(1, math.ceil(M / opts.images_per_room))
         R, t, room_of_image = _trajectory(opts, total_rooms, np.random.default_rng([opts.seed, 0]))
         rng = np.random.default_rng([opts.seed, 1])
-        pilot = _room_landmarks(opts, 2000, rng)
-        first = np.flatnonzero(room_of_image == 0)
-        pc = np.einsum("mji,mnj->mni", R[first], pilot[None] - t[first, None])
-        seen, _ = _visible(camera, pc.reshape(-1, 3), opts, half_fov)
-        per_room = max(4, int(round(opts.obs_per_image / max(float(seen.mean()), 1e-3))))
+        per_room = _landmarks_per_room(camera, R, t, room_of_image, opts, half_fov, rng)
         own = np.array(self.image_range(), np.int64)
         images = np.r_[own, [own[-1] + 1]] if own[-1] + 1 < M else own
         row_of_image = {int(g): q for q, g in enumerate(images)}
@@ -612,16 +621,10 @@ class BuildingPart:
                 continue
             rr = np.random.default_rng([opts.seed, 2, r])
             pw = _room_landmarks(opts, per_room, rr) + np.array([r * length, 0.0, 0.0])
-            pc = np.einsum("mji,mnj->mni", R[imgs], pw[None] - t[imgs, None]).reshape(-1, 3)
-            ok, uv = _visible(camera, pc, opts, half_fov)
-            ok = ok.reshape(len(imgs), len(pw))
-            used = ok.sum(0) >= max(opts.min_track, 1)
-            ok &= used
+            used, ii, jj, uv = _room_observations(camera, R[imgs], t[imgs], pw, opts, half_fov)
             new_index = np.cumsum(used) - 1 + n_pts
-            ii, jj = np.nonzero(ok)
             oi.append(np.array([row_of_image[int(g)] for g in imgs])[ii])
             op.append(new_index[jj])
-            uv = uv.reshape(len(imgs), len(pw), 2)[ii, jj]
             uvs.append(uv + rr.normal(scale=opts.noise_px, size=uv.shape))
             pts.append(pw[used])
             ids.append(r * per_room + np.flatnonzero(used))
