@@ -8,7 +8,7 @@ import signal
 
 import numpy as np
 import pytest
-from helpers import bare_calibration
+from helpers import bare_calibration, bare_rig_calibration
 
 from gtsam_sphere.cli import main
 from gtsam_sphere.core.errors import InputError, OptionsError
@@ -176,42 +176,19 @@ def cli_map(tmp_path_factory):
     return scene, d
 
 
+def _refine_cli(d, out, *extra):
+    """``gtsam-sphere refine`` of ``d``'s map and calibration to ``d / out`` (sigma 0.5 px)."""
+    return main(
+        ["refine", str(d / "map.json"), "--calibration", str(d / "calib.json"),
+         "-o", str(d / out), "--sigma-px", "0.5", *extra]
+    )  # fmt: skip
+
+
 @pytest.mark.slow  # the rig test runs the same two paths in the fast loop
 def test_cli_refine_local_and_partitioned_agree(cli_map, capsys):
     scene, d = cli_map
-    assert (
-        main(
-            [
-                "refine",
-                str(d / "map.json"),
-                "--calibration",
-                str(d / "calib.json"),
-                "-o",
-                str(d / "g.json"),
-                "--sigma-px",
-                "0.5",
-                "--quiet",
-            ]
-        )
-        == 0
-    )
-    assert (
-        main(
-            [
-                "refine",
-                str(d / "map.json"),
-                "--calibration",
-                str(d / "calib.json"),
-                "-o",
-                str(d / "p.json"),
-                "--sigma-px",
-                "0.5",
-                "--partitions",
-                "2",
-            ]
-        )
-        == 0
-    )
+    assert _refine_cli(d, "g.json", "--quiet") == 0
+    assert _refine_cli(d, "p.json", "--partitions", "2") == 0
     err = capsys.readouterr().err
     assert "iteration" in err  # progress without --quiet
     from gtsam_sphere import load_calibration
@@ -280,44 +257,9 @@ def test_ray_worker_killed_mid_run_converges_to_the_same_answer(small_map, globa
 def test_cli_refine_on_ray(cli_map, capsys):
     pytest.importorskip("ray", reason="Ray not installed (pip install 'gtsam-sphere[distributed]')")
     _, d = cli_map
-    assert (
-        main(
-            [
-                "refine",
-                str(d / "map.json"),
-                "--calibration",
-                str(d / "calib.json"),
-                "-o",
-                str(d / "r.json"),
-                "--sigma-px",
-                "0.5",
-                "--engine",
-                "ray",
-                "--workers",
-                "2",
-                "--partitions",
-                "2",
-                "--quiet",
-            ]
-        )
-        == 0
-    )
-    assert (
-        main(
-            [
-                "refine",
-                str(d / "map.json"),
-                "--calibration",
-                str(d / "calib.json"),
-                "-o",
-                str(d / "g2.json"),
-                "--sigma-px",
-                "0.5",
-                "--quiet",
-            ]
-        )
-        == 0
-    )
+    ray_args = ("--engine", "ray", "--workers", "2", "--partitions", "2", "--quiet")
+    assert _refine_cli(d, "r.json", *ray_args) == 0
+    assert _refine_cli(d, "g2.json", "--quiet") == 0
     from gtsam_sphere import load_calibration
 
     r, g = load_calibration(d / "r.json"), load_calibration(d / "g2.json")
@@ -327,7 +269,6 @@ def test_cli_refine_on_ray(cli_map, capsys):
 
 def _rig_map(d):
     """A back-to-back rig (cam1 turned 180 deg, 10 cm aside) along the building's path."""
-    from gtsam_sphere.io.calibration import RigCalibration
     from gtsam_sphere.simulate.building import rotation_exp
 
     scene = simulate_building(n_images=50, obs_per_image=40.0, seed=7)
@@ -375,27 +316,10 @@ def _rig_map(d):
         "images": images,
     }
     (d / "rig_map.json").write_text(json.dumps(doc))
-    rig = RigCalibration(
-        camera_ids=["cam0", "cam1"],
-        cameras={"cam0": cam, "cam1": cam},
-        models={"cam0": "radial", "cam1": "radial"},
-        cam_from_rig={"cam0": (np.eye(3), np.zeros(3)), "cam1": c1_from_rig},
-        frame_ids=[],
-        rig_from_world_R=np.zeros((0, 3, 3)),
-        rig_from_world_t=np.zeros((0, 3)),
-        image_ids=[],
-        image_camera=[],
-        image_frame=[],
-        cam_from_world_R=np.zeros((0, 3, 3)),
-        cam_from_world_t=np.zeros((0, 3)),
-        target_ids=[],
-        target_xyz=np.zeros((0, 3)),
-        statistics={
-            "rms_px": 0.5,
-            "n_observations": 0,
-            "n_rejected": 0,
-            "cameras": {c: {"rms_px": 0.5} for c in ("cam0", "cam1")},
-        },
+    rig = bare_rig_calibration(
+        {"cam0": cam, "cam1": cam},
+        {"cam0": (np.eye(3), np.zeros(3)), "cam1": c1_from_rig},
+        rms_px=0.5,
     )
     rig.save(d / "rig_calib.json")
     return scene, dict((k, (R, t)) for k, R, t in truth_cw)
