@@ -164,6 +164,16 @@ def run(args) -> int:
         "seconds": seconds,
     }
     source = {"map": str(Path(args.map)), "calibration": str(args.calibration)}
+    # what calibration@1 and @2 share: the refined network, its statistics and origin
+    network = dict(
+        cam_from_world_R=R_cw,
+        cam_from_world_t=t_cw,
+        target_ids=target_ids,
+        target_xyz=result.points_world,
+        statistics=stats,
+        units=dataset.units,
+        extra={"source": source},
+    )
     if rig:
         stats["cameras"] = {
             cid: {
@@ -172,20 +182,9 @@ def run(args) -> int:
             }
             for c, cid in enumerate(dataset.camera_ids)
         }
-        out = _rig_output(calib, dataset, R_cw, t_cw, target_ids, result, stats, source)
+        out = _rig_output(calib, dataset, network)
     else:
-        out = Calibration(
-            model=calib.model,
-            camera=calib.camera,
-            image_ids=image_ids,
-            cam_from_world_R=R_cw,
-            cam_from_world_t=t_cw,
-            target_ids=target_ids,
-            target_xyz=result.points_world,
-            statistics=stats,
-            units=dataset.units,
-            extra={"source": source},
-        )
+        out = Calibration(model=calib.model, camera=calib.camera, image_ids=image_ids, **network)
     out.save(args.output)
     print(
         f"{args.output}: {problem.n_images} images, {problem.n_points} targets, "
@@ -199,8 +198,10 @@ def run(args) -> int:
     return 0 if result.converged else 1
 
 
-def _rig_output(calib, dataset, R_cw, t_cw, target_ids, result, stats, source):
-    """The refined rig map as a ``calibration@2`` (each frame's pose from its first image)."""
+def _rig_output(calib, dataset, network: dict):
+    """The refined rig map as a ``calibration@2`` (each frame's pose from its first image);
+    ``network``: the keyword arguments calibration@1 and @2 share."""
+    R_cw, t_cw = network["cam_from_world_R"], network["cam_from_world_t"]
     from ..io.calibration import RigCalibration
 
     ids = dataset.camera_ids
@@ -228,11 +229,5 @@ def _rig_output(calib, dataset, R_cw, t_cw, target_ids, result, stats, source):
         image_ids=list(dataset.image_ids),
         image_camera=cameras,
         image_frame=list(dataset.image_frame),
-        cam_from_world_R=R_cw,
-        cam_from_world_t=t_cw,
-        target_ids=target_ids,
-        target_xyz=result.points_world,
-        statistics=stats,
-        units=dataset.units,
-        extra={"source": source},
+        **network,
     )
