@@ -4,7 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from gtsam_sphere.core.least_squares import Damping, LMStatus, levenberg_marquardt
+from gtsam_sphere.core.least_squares import (
+    Damping,
+    LMStatus,
+    levenberg_marquardt,
+    levenberg_marquardt_batch,
+)
 
 
 def _exp_fit():
@@ -64,3 +69,97 @@ def test_an_infeasible_region_is_never_entered():
         max_iterations=50,
     )
     assert res.x[0] <= 1.5
+
+
+def _exp_fit_batch():
+    """:func:`_exp_fit` for a batch of states (B, 2)."""
+    cost1, linearize1 = _exp_fit()
+
+    def cost(xs):
+        return np.array([cost1(x) for x in xs])
+
+    def linearize(xs):
+        pairs = [linearize1(x) for x in xs]
+        return np.stack([H for H, _ in pairs]), np.stack([g for _, g in pairs])
+
+    return cost, linearize
+
+
+def test_a_batch_runs_each_problem_as_alone():
+    """Every problem of a batch takes the steps, damping and status it takes alone: one
+    converges, one is at the minimum already (stalls), one hits the iteration limit, one
+    starts where the normal equations are singular (the damping makes them solvable)."""
+    cost1, linearize1 = _exp_fit()
+    cost, linearize = _exp_fit_batch()
+    starts = np.array([[1.0, 0.0], [2.0, -1.5], [0.0, 0.0], [0.01, 3.0]])
+    damping = Damping(max_tries=8)
+
+    def conv1(c0, c1, d):
+        return c0 - c1 <= 1e-14 * c0 or c1 == 0.0
+
+    with np.errstate(over="ignore"):  # the last start tries steps to huge exponents
+        batch = _run_batch_and_alone(starts, cost, linearize, cost1, linearize1, conv1, damping)
+    for b, alone in enumerate(batch[1]):
+        np.testing.assert_array_equal(batch[0].x[b], alone.x)
+        assert batch[0].cost[b] == alone.cost and batch[0].damping[b] == alone.damping
+        assert batch[0].iterations[b] == alone.iterations
+        assert batch[0].status[b] is alone.status
+    batch = batch[0]
+    assert batch.status[0] is LMStatus.CONVERGED
+    assert batch.status[1] is LMStatus.STALLED
+    assert batch.status[2] is LMStatus.CONVERGED  # from a singular start
+    assert batch.status[3] is LMStatus.MAX_ITERATIONS and batch.iterations[3] == 10
+
+
+def _run_batch_and_alone(starts, cost, linearize, cost1, linearize1, conv1, damping):
+    batch = levenberg_marquardt_batch(
+        starts,
+        cost,
+        linearize,
+        converged=lambda c0, c1, d: (c0 - c1 <= 1e-14 * c0) | (c1 == 0.0),
+        damping=damping,
+        max_iterations=10,
+    )
+    alone = [
+        levenberg_marquardt(
+            x0, cost1, linearize1, converged=conv1, damping=damping, max_iterations=10
+        )
+        for x0 in starts
+    ]
+    return batch, alone
+
+
+def test_a_batch_rejects_infeasible_and_negligible_steps_per_problem():
+    """A tuple state: each problem carries its own fence, and the callbacks see the rows
+    of the problems they are asked about."""
+    cost, linearize = _exp_fit_batch()
+    starts = (np.array([[1.0, 0.0], [1.2, -0.5]]), np.array([1.5, 9.0]))
+    res = levenberg_marquardt_batch(
+        starts,
+        lambda s: cost(s[0]),
+        lambda s: linearize(s[0]),
+        retract=lambda s, d: (s[0] + d, s[1]),
+        feasible=lambda s: s[0][:, 0] <= s[1],
+        damping=Damping(ceiling=1e10),
+        max_iterations=50,
+    )
+    x = res.x[0]
+    assert x[0, 0] <= 1.5  # only the first problem is fenced
+    np.testing.assert_allclose(x[1], [2.0, -1.5], atol=1e-6)
+    stop = levenberg_marquardt_batch(
+        starts[0], cost, linearize, negligible=lambda d, g, c: np.ones(len(d), bool)
+    )
+    assert stop.status == [LMStatus.CONVERGED] * 2 and (stop.x == starts[0]).all()
+
+
+def test_singular_systems_of_a_batch_are_found_one_by_one():
+    from gtsam_sphere.core.least_squares import _solve_damped
+
+    H = np.stack([np.diag([2.0, 3.0]), np.array([[1.0, 1.0], [1.0, 1.0]])])
+    g = np.array([[1.0, -1.0], [1.0, 2.0]])
+    delta, singular = _solve_damped(H, g, np.zeros(2), np.ones((2, 2)))
+    assert singular.tolist() == [False, True]
+    np.testing.assert_array_equal(delta[0], np.linalg.solve(H[0], -g[0]))
+    delta, singular = _solve_damped(H, g, np.array([0.0, 1.0]), np.ones((2, 2)))
+    assert not singular.any()
+    np.testing.assert_allclose((H[1] + np.eye(2)) @ delta[1], -g[1])

@@ -75,3 +75,18 @@ def test_left_jacobian_against_central_differences():
             [(so3_exp(w + h * e) @ y - so3_exp(w - h * e) @ y) / (2 * h) for e in np.eye(3)]
         )
         np.testing.assert_allclose(analytic, numeric, atol=1e-8)
+
+
+def test_nearest_rotation_of_a_stack_equals_each_alone():
+    from gtsam_sphere.core.lie import nearest_rotation
+
+    rng = np.random.default_rng(4)
+    stack = rng.normal(size=(6, 3, 3))
+    stack[2] = np.diag([1.0, 1.0, -1.0])  # a reflection: det +1 is enforced
+    out = nearest_rotation(stack)
+    for m, r in zip(stack, out):
+        np.testing.assert_allclose(r, nearest_rotation(m), atol=1e-14)
+    np.testing.assert_allclose(np.linalg.det(out), 1.0)
+    np.testing.assert_allclose(
+        out @ out.transpose(0, 2, 1), np.broadcast_to(np.eye(3), out.shape), atol=1e-14
+    )

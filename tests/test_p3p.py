@@ -207,37 +207,44 @@ def test_ransac_poses_rejects_mismatched_lists():
 def test_pose_refinement_gradient_matches_finite_differences(monkeypatch):
     """The pose LM's normal equations: ``g = J^T W r`` is the gradient of its cost along
     the retraction ``(exp(w) R, t + dt)`` and ``H = J^T W J`` its Gauss-Newton matrix
-    (checked where every residual is inside the Huber knee, so the weights are 1)."""
+    (checked where every residual is inside the Huber knee, so the weights are 1), for
+    each problem of a batch of two of different sizes."""
     import gtsam_sphere.core.p3p as p3p_module
 
     rng = np.random.default_rng(9)
     rot, t, f, x, _ = _ransac_scene(rng, 30, 0.0, noise_rad=3e-3)
+    rot2, t2, f2, x2, _ = _ransac_scene(rng, 17, 0.0, noise_rad=3e-3)
     seen = {}
-    real = p3p_module.levenberg_marquardt
+    real = p3p_module.levenberg_marquardt_batch
 
     def spy(x0, cost, linearize, *, retract, **kwargs):
         seen.update(x0=x0, cost=cost, linearize=linearize, retract=retract)
         return real(x0, cost, linearize, retract=retract, **kwargs)
 
-    monkeypatch.setattr(p3p_module, "levenberg_marquardt", spy)
-    p3p_module._refine_pose(f, x, so3_exp(np.array([0.01, -0.02, 0.005])) @ rot, t + 0.01, 1.0)
+    monkeypatch.setattr(p3p_module, "levenberg_marquardt_batch", spy)
+    R0 = np.stack([so3_exp(np.array([0.01, -0.02, 0.005])) @ rot, rot2])
+    t0 = np.stack([t + 0.01, t2 - 0.02])
+    p3p_module._refine_poses(
+        np.concatenate([f, f2]), np.concatenate([x, x2]), [30, 17], R0, t0, [1.0, 1.0]
+    )
     pose, cost, retract = seen["x0"], seen["cost"], seen["retract"]
     H, g = seen["linearize"](pose)
+    assert H.shape == (2, 6, 6) and g.shape == (2, 6)
     h = 1e-6
-    grad = np.array(
-        [(cost(retract(pose, h * e)) - cost(retract(pose, -h * e))) / (2 * h) for e in np.eye(6)]
+    steps = [h * np.stack([e, e]) for e in np.eye(6)]
+    grad = np.stack(
+        [(cost(retract(pose, d)) - cost(retract(pose, -d))) / (2 * h) for d in steps], axis=1
     )
     np.testing.assert_allclose(g, grad, rtol=1e-5, atol=1e-9)
     # H: the Jacobian of g along each direction, up to the second-order residual term
-    dg = np.column_stack(
+    dg = np.stack(
         [
-            (
-                seen["linearize"](retract(pose, h * e))[1]
-                - seen["linearize"](retract(pose, -h * e))[1]
-            )
+            (seen["linearize"](retract(pose, d))[1] - seen["linearize"](retract(pose, -d))[1])
             / (2 * h)
-            for e in np.eye(6)
-        ]
+            for d in steps
+        ],
+        axis=2,
     )
-    np.testing.assert_allclose(H, dg, atol=0.05 * np.abs(H).max())
-    assert np.allclose(H, H.T) and np.all(np.linalg.eigvalsh(H) > 0)
+    for b in range(2):
+        np.testing.assert_allclose(H[b], dg[b], atol=0.05 * np.abs(H[b]).max())
+        assert np.allclose(H[b], H[b].T) and np.all(np.linalg.eigvalsh(H[b]) > 0)

@@ -27,7 +27,14 @@ import numpy as np
 
 from ._compat import StrEnum
 
-__all__ = ["Damping", "LMResult", "LMStatus", "levenberg_marquardt"]
+__all__ = [
+    "Damping",
+    "LMBatchResult",
+    "LMResult",
+    "LMStatus",
+    "levenberg_marquardt",
+    "levenberg_marquardt_batch",
+]
 
 
 class LMStatus(StrEnum):
@@ -45,15 +52,15 @@ class LMStatus(StrEnum):
 
 
 def marquardt_scaling(H: np.ndarray) -> np.ndarray:
-    """Marquardt's diagonal scaling ``diag(H)``, non-positive entries replaced by 1."""
-    d = np.diag(H).copy()
+    """Marquardt's scaling ``diag(H)`` of H (..., P, P), non-positive entries replaced by 1."""
+    d = np.diagonal(H, axis1=-2, axis2=-1).copy()
     d[~(d > 0)] = 1.0
     return d
 
 
 def ridge_scaling(H: np.ndarray) -> np.ndarray:
-    """Diagonal scaling ``diag(H) + 1e-12`` (a zero column still gets some damping)."""
-    return np.diag(H) + 1e-12
+    """Scaling ``diag(H) + 1e-12`` of H (..., P, P) (a zero column still gets some damping)."""
+    return np.diagonal(H, axis1=-2, axis2=-1) + 1e-12
 
 
 @dataclass(frozen=True)
@@ -127,6 +134,209 @@ def _add(x, delta):
     return x + delta
 
 
+def _take(x: Any, idx: np.ndarray) -> Any:
+    """The problems ``idx`` of a batch state (array: leading axis; tuple: each member;
+    list: its items)."""
+    if isinstance(x, tuple):
+        return tuple(_take(e, idx) for e in x)
+    if isinstance(x, list):
+        return [x[i] for i in idx]
+    return np.asarray(x)[idx]
+
+
+def _put(x: Any, idx: np.ndarray, sub: Any) -> Any:
+    """A batch state with the problems ``idx`` replaced by ``sub`` (a copy; as :func:`_take`)."""
+    if isinstance(x, tuple):
+        return tuple(_put(e, idx, s) for e, s in zip(x, sub))
+    if isinstance(x, list):
+        out = list(x)
+        for i, v in zip(idx, sub):
+            out[i] = v
+        return out
+    out = np.array(x, copy=True)
+    out[idx] = sub
+    return out
+
+
+@dataclass
+class LMBatchResult:
+    """Outcome of :func:`levenberg_marquardt_batch`, one entry per problem.
+
+    Attributes
+    ----------
+    x : Any
+        The batch state of the last accepted points (``x0``'s rows where none was).
+    cost : ndarray, shape (B,)
+    iterations : ndarray of int, shape (B,)
+        Linearisations done per problem.
+    status : list of B LMStatus
+    damping : ndarray, shape (B,)
+        ``lam`` at the end.
+    """
+
+    x: Any
+    cost: np.ndarray
+    iterations: np.ndarray
+    status: list
+    damping: np.ndarray
+
+
+def _solve_damped(H: np.ndarray, g: np.ndarray, lam: np.ndarray, s: np.ndarray):
+    """Steps ``(H + lam diag(s)) delta = -g`` of a batch, (B, P), and which were singular (B,)."""
+    A = H.copy()
+    diag = np.einsum("bii->bi", A)  # a view: the damping goes onto the diagonal in place
+    diag += lam[:, None] * s
+    try:
+        return np.linalg.solve(A, -g[..., None])[..., 0], np.zeros(len(H), bool)
+    except np.linalg.LinAlgError:  # find the singular ones
+        delta = np.zeros_like(g)
+        singular = np.zeros(len(H), bool)
+        for b in range(len(H)):
+            try:
+                delta[b] = np.linalg.solve(A[b], -g[b])
+            except np.linalg.LinAlgError:
+                singular[b] = True
+        return delta, singular
+
+
+def levenberg_marquardt_batch(
+    x0: Any,
+    cost: Callable[[Any], np.ndarray],
+    linearize: Callable[[Any], tuple[np.ndarray, np.ndarray]],
+    *,
+    retract: Callable[[Any, np.ndarray], Any] = _add,
+    converged: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray] | None = None,
+    negligible: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray] | None = None,
+    feasible: Callable[[Any], np.ndarray] | None = None,
+    damping: Damping = Damping(),
+    max_iterations: int = 100,
+    cost0: np.ndarray | None = None,
+) -> LMBatchResult:
+    """Levenberg-Marquardt on ``B`` independent problems at once (the package's one loop).
+
+    Each problem runs exactly the loop of :func:`levenberg_marquardt` (its own ``lam``,
+    tries, acceptance and status); the problems still running share every call, so a
+    thousand small fits (e.g. the pose refinements of a RANSAC over many images and lens
+    hypotheses) cost a few dozen numpy calls instead of tens of thousands. Each call
+    receives the state of the problems it concerns only, in the order of the batch.
+
+    Parameters
+    ----------
+    x0 : batch state
+        ``B`` starting points: an array (B, ...), a tuple of such arrays (e.g.
+        ``(R (B, 3, 3), t (B, 3))``) or a list of ``B`` arbitrary objects. Callbacks
+        receive sub-batches of the same kind (rows selected).
+    cost : callable
+        ``cost(x) -> (B',)``.
+    linearize : callable
+        ``linearize(x) -> (H (B', P, P), g (B', P))``: Gauss-Newton matrices
+        ``J^T W J`` and gradients ``J^T W r``.
+    retract : callable
+        ``retract(x, delta (B', P)) -> x'``; default ``x + delta``.
+    converged : callable, optional
+        ``converged(cost_before (B',), cost_after (B',), delta (B', P)) -> (B',) bool``,
+        asked after each accepted step; default: never.
+    negligible : callable, optional
+        ``negligible(delta (B', P), g (B', P), cost (B',)) -> (B',) bool``, asked of each
+        solved step before it is tried: True ends that problem as converged.
+    feasible : callable, optional
+        ``feasible(x') -> (B',) bool``: an infeasible trial point is rejected like a
+        worse one.
+    damping : Damping
+        Its ``scaling`` receives ``H`` (B', P, P) and returns (B', P).
+    max_iterations : int
+        Linearisations at most, per problem.
+    cost0 : (B,) array, optional
+        ``cost(x0)`` when the caller has it already.
+
+    Returns
+    -------
+    LMBatchResult
+    """
+    x = x0
+    c = np.array(cost(x) if cost0 is None else cost0, dtype=float).reshape(-1)
+    n = c.size
+    lam = np.full(n, float(damping.initial))
+    iterations = np.zeros(n, int)
+    tries = np.zeros(n, int)
+    status = [LMStatus.MAX_ITERATIONS] * n
+    running = np.ones(n, bool)
+    relinearize = np.ones(n, bool)
+    H = g = s = None
+    while True:
+        lin = np.flatnonzero(running & relinearize)
+        if lin.size:
+            spent = lin[iterations[lin] >= max_iterations]
+            running[spent] = False  # status stays MAX_ITERATIONS
+            lin = lin[iterations[lin] < max_iterations]
+        if lin.size:
+            iterations[lin] += 1
+            H_l, g_l = linearize(_take(x, lin))
+            H_l, g_l = np.asarray(H_l, float), np.asarray(g_l, float)
+            if H is None:
+                H = np.zeros((n, *H_l.shape[1:]))
+                g = np.zeros((n, *g_l.shape[1:]))
+                s = np.zeros_like(g)
+            H[lin], g[lin] = H_l, g_l
+            s[lin] = damping.scaling(H_l)
+            tries[lin] = 0
+            relinearize[lin] = False
+        act = np.flatnonzero(running)
+        if not act.size:
+            break
+        # one try of every running problem; those out of tries or damping stall
+        gate = lam[act] < damping.ceiling
+        if damping.max_tries is not None:
+            gate &= tries[act] < damping.max_tries
+        for b in act[~gate]:
+            status[b] = LMStatus.STALLED
+        running[act[~gate]] = False
+        act = act[gate]
+        if not act.size:
+            continue
+        tries[act] += 1
+        delta, singular = _solve_damped(H[act], g[act], lam[act], s[act])
+        lam[act[singular]] *= damping.increase_singular
+        ok = ~singular
+        act, delta = act[ok], delta[ok]
+        if negligible is not None and act.size:
+            stop = np.asarray(negligible(delta, g[act], c[act]), bool)
+            for b in act[stop]:
+                status[b] = LMStatus.CONVERGED
+            running[act[stop]] = False
+            act, delta = act[~stop], delta[~stop]
+        if not act.size:
+            continue
+        x_new = retract(_take(x, act), delta)
+        c_new = np.full(act.size, np.inf)
+        fine = (
+            np.ones(act.size, bool)
+            if feasible is None
+            else np.asarray(feasible(x_new), bool).reshape(-1)
+        )
+        if fine.all():
+            c_new[:] = cost(x_new)
+        elif fine.any():
+            c_new[fine] = cost(_take(x_new, np.flatnonzero(fine)))
+        better = c_new <= c[act] if damping.accept_equal else c_new < c[act]
+        good = fine & np.isfinite(c_new) & better
+        lam[act[~good]] *= damping.increase
+        if not good.any():
+            continue
+        acc, kept = act[good], np.flatnonzero(good)
+        c_old = c[acc].copy()
+        x = _put(x, acc, _take(x_new, kept))
+        c[acc] = c_new[good]
+        lam[acc] = np.maximum(lam[acc] / damping.decrease, damping.floor)
+        relinearize[acc] = True
+        if converged is not None:
+            done = np.asarray(converged(c_old, c[acc], delta[good]), bool).reshape(-1)
+            for b in acc[done]:
+                status[b] = LMStatus.CONVERGED
+            running[acc[done]] = False
+    return LMBatchResult(x, c, iterations, status, lam)
+
+
 def levenberg_marquardt(
     x0: Any,
     cost: Callable[[Any], float],
@@ -145,7 +355,8 @@ def levenberg_marquardt(
     Each iteration linearises at the current point, then solves
     ``(H + lam diag(s)) delta = -g`` for growing ``lam`` until the point
     ``retract(x, delta)`` is feasible and its cost finite and lower (or equal, with
-    ``damping.accept_equal``); the point moves there and ``lam`` shrinks.
+    ``damping.accept_equal``); the point moves there and ``lam`` shrinks. This is
+    :func:`levenberg_marquardt_batch` of one problem.
 
     Parameters
     ----------
@@ -177,42 +388,27 @@ def levenberg_marquardt(
     -------
     LMResult
     """
-    x = x0
-    c = float(cost(x)) if cost0 is None else float(cost0)
-    lam = damping.initial
-    iterations = 0
-    status = LMStatus.MAX_ITERATIONS
-    while iterations < max_iterations:
-        iterations += 1
-        H, g = linearize(x)
-        s = damping.scaling(H)
-        accepted = stop_here = False
-        tries = 0
-        while lam < damping.ceiling and (damping.max_tries is None or tries < damping.max_tries):
-            tries += 1
-            try:
-                delta = np.linalg.solve(H + lam * np.diag(s), -g)
-            except np.linalg.LinAlgError:
-                lam *= damping.increase_singular
-                continue
-            if negligible is not None and negligible(delta, g, c):
-                stop_here = True
-                break
-            x_new = retract(x, delta)
-            if feasible is None or feasible(x_new):
-                c_new = float(cost(x_new))
-                better = c_new <= c if damping.accept_equal else c_new < c
-                if math.isfinite(c_new) and better:
-                    accepted = True
-                    break
-            lam *= damping.increase
-        if not accepted:
-            status = LMStatus.CONVERGED if stop_here else LMStatus.STALLED
-            break
-        c_old = c
-        x, c = x_new, c_new
-        lam = max(lam / damping.decrease, damping.floor)
-        if converged is not None and converged(c_old, c, delta):
-            status = LMStatus.CONVERGED
-            break
-    return LMResult(x, c, iterations, status, lam)
+
+    def lin(xs):
+        H, g = linearize(xs[0])
+        return np.asarray(H, float)[None], np.asarray(g, float)[None]
+
+    fit = levenberg_marquardt_batch(
+        [x0],
+        lambda xs: np.array([cost(xs[0])], dtype=float),
+        lin,
+        retract=lambda xs, d: [retract(xs[0], d[0])],
+        converged=None
+        if converged is None
+        else lambda c0, c1, d: np.array([bool(converged(float(c0[0]), float(c1[0]), d[0]))]),
+        negligible=None
+        if negligible is None
+        else lambda d, g, c: np.array([bool(negligible(d[0], g[0], float(c[0])))]),
+        feasible=None if feasible is None else lambda xs: np.array([bool(feasible(xs[0]))]),
+        damping=damping,
+        max_iterations=max_iterations,
+        cost0=None if cost0 is None else np.array([cost0], dtype=float),
+    )
+    return LMResult(
+        fit.x[0], float(fit.cost[0]), int(fit.iterations[0]), fit.status[0], float(fit.damping[0])
+    )

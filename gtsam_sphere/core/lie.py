@@ -196,17 +196,25 @@ def rotation_angle(R: np.ndarray) -> np.ndarray:
 
 
 def nearest_rotation(M: np.ndarray) -> np.ndarray:
-    """The rotation nearest to ``M`` (3, 3) in the Frobenius norm (SVD), det +1.
+    """The rotation nearest to ``M`` in the Frobenius norm (SVD), det +1.
 
     Parameters
     ----------
-    M : ndarray, shape (3, 3)
+    M : ndarray, shape (3, 3) or (..., 3, 3)
 
     Returns
     -------
-    ndarray, shape (3, 3)
-        ``U diag(1, 1, sign det(U V^T)) V^T`` of ``M = U S V^T``.
+    ndarray, shape of ``M``
+        ``U diag(1, 1, sign det(U V^T)) V^T`` of ``M = U S V^T`` (each matrix of a stack).
     """
+    M = np.asarray(M, float)
+    if M.ndim > 2:
+        U, _, Vt = np.linalg.svd(M)
+        sign = np.sign(np.linalg.det(U @ Vt))
+        sign[sign == 0] = 1.0
+        U = U.copy()
+        U[..., :, 2] *= sign[..., None]
+        return U @ Vt
     U, _, Vt = np.linalg.svd(M)
     D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt)) or 1.0])
     return U @ D @ Vt

@@ -22,9 +22,10 @@ both quadratic in ``u`` with the same leading coefficient ``b^2``::
 
 Their resultant in ``u`` is a quartic in ``v``; ``A - B`` is linear in ``u`` and gives ``u``
 from each real root. The distances are polished by Newton's method on the three original
-equations, and ``R, t`` follow from aligning the camera-frame points ``s_i f_i`` to the
-world points (Kabsch with ``det R = +1``). Everything is vectorised over batches of
-minimal samples so RANSAC can evaluate hundreds of hypotheses per numpy call.
+equations, and ``R, t`` follow from aligning the camera-frame triangle ``s_i f_i`` with
+the world triangle (their orthonormal edge/normal frames, exact for congruent
+triangles). Everything is vectorised over batches of minimal samples so RANSAC can
+evaluate hundreds of hypotheses per numpy call.
 """
 
 from __future__ import annotations
@@ -33,9 +34,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .geometry import fit_rigid
-from .least_squares import Damping, levenberg_marquardt, ridge_scaling
-from .lie import nearest_rotation, skew, so3_exp
+from .least_squares import Damping, levenberg_marquardt_batch, ridge_scaling
+from .lie import nearest_rotation, skew, so3_exp_batch
 from .robust import Loss, robust_weight
 
 __all__ = ["PoseResult", "angular_errors_rad", "p3p", "ransac_pose", "ransac_poses"]
@@ -209,8 +209,29 @@ def _p3p_batch(
     s_m = s[kk, jj] * np.sqrt(scale2)[kk, None]
     rot = np.broadcast_to(np.eye(3), (k, 4, 3, 3)).copy()
     t = np.zeros((k, 4, 3))
-    rot[kk, jj], t[kk, jj] = fit_rigid(points[kk], s_m[..., None] * bearings[kk])
+    rot[kk, jj], t[kk, jj] = _triangle_pose(points[kk], s_m[..., None] * bearings[kk])
     return rot, t, valid
+
+
+def _triangle_frame(p: np.ndarray) -> np.ndarray:
+    """Orthonormal frames (M, 3, 3) (columns: edge 1->2, in-plane normal, plane normal)
+    of triangles ``p`` (M, 3, 3) (rows are the corners)."""
+    e1 = p[:, 1] - p[:, 0]
+    n = _cross(e1, p[:, 2] - p[:, 0])
+    e1 = e1 / np.linalg.norm(e1, axis=1, keepdims=True)
+    e3 = n / np.linalg.norm(n, axis=1, keepdims=True)
+    return np.stack([e1, _cross(e3, e1), e3], axis=-1)
+
+
+def _triangle_pose(world: np.ndarray, cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``R, t`` with ``cam ~= R world + t`` for congruent triangles (M, 3, 3), rows corners.
+
+    The rotation maps the world triangle's frame onto the camera triangle's (exact for
+    the P3P solutions, whose distances reproduce the sides; no SVD); the translation
+    maps the centroids.
+    """
+    R = _triangle_frame(cam) @ _triangle_frame(world).transpose(0, 2, 1)
+    return R, cam.mean(axis=1) - np.einsum("mij,mj->mi", R, world.mean(axis=1))
 
 
 def _cosine_equations(
@@ -334,57 +355,101 @@ def _sample_triplets(rng: np.random.Generator, n: int, k: int) -> np.ndarray:
 _REFINE_DAMPING = Damping(floor=1e-9, max_tries=6, accept_equal=True, scaling=ridge_scaling)
 
 
-def _refine_pose(
+class _Segments:
+    """Rows of many problems stored end to end: problem ``p`` owns rows
+    ``start[p] : start[p] + size[p]`` of the concatenated arrays."""
+
+    def __init__(self, sizes: np.ndarray):
+        self.size = np.asarray(sizes, int)
+        self.start = np.concatenate([[0], np.cumsum(self.size)[:-1]]).astype(int)
+
+    def rows(self, pid: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Rows of problems ``pid`` (in that order), the position in ``pid`` owning each
+        row, and where each problem's rows begin in that list (for ``np.add.reduceat``)."""
+        size = self.size[pid]
+        owner = np.repeat(np.arange(pid.size), size)
+        first = np.concatenate([[0], np.cumsum(size)[:-1]]).astype(int)
+        rows = np.arange(int(size.sum())) - first[owner] + self.start[pid][owner]
+        return rows, owner, first
+
+
+def _refine_poses(
     bearings: np.ndarray,
     points: np.ndarray,
+    sizes: np.ndarray,
     R: np.ndarray,
     t: np.ndarray,
-    huber_rad: float,
+    huber_rad: np.ndarray,
     n_iter: int = 8,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Levenberg-Marquardt on the chord error ``p/|p| - f`` (~ angle) over a 6-DoF pose.
+    """Levenberg-Marquardt on the chord error ``p/|p| - f`` (~ angle) over 6-DoF poses,
+    for many problems at once (:func:`~gtsam_sphere.core.least_squares.levenberg_marquardt_batch`).
 
     The rotation is updated on the left, ``R <- exp([w]) R``, the translation additively.
-    Residuals get Huber weights with knee ``huber_rad``.
+    Residuals get Huber weights with knee ``huber_rad``. Each problem's sums run over its
+    own rows only (``np.add.reduceat``), so its result does not depend on the others.
+
+    Parameters
+    ----------
+    bearings : (M, 3) unit bearings, camera frame, the problems' rows end to end.
+    points : (M, 3) world points, metres.
+    sizes : (B,) rows per problem (each at least 1), summing to M.
+    R : (B, 3, 3) cam_from_world rotations to start from.
+    t : (B, 3) cam_from_world translations, metres.
+    huber_rad : (B,) Huber knee per problem, radians.
+    n_iter : int
+        Linearisations at most.
+
+    Returns
+    -------
+    R : (B, 3, 3) refined rotations (re-orthonormalised); t : (B, 3).
     """
+    seg = _Segments(sizes)
+    huber_rad = np.asarray(huber_rad, float)
 
-    def cost(pose):
-        R_, t_ = pose
-        p = points @ R_.T + t_
-        r = p / np.linalg.norm(p, axis=1, keepdims=True) - bearings
-        e = np.linalg.norm(r, axis=1)
-        return np.sum(robust_weight(e, Loss.HUBER, huber_rad)[1])
-
-    def linearize(pose):
-        R_, t_ = pose
-        p = points @ R_.T + t_
+    def residuals(pose):
+        R_, t_, pid = pose
+        rows, owner, first = seg.rows(pid)
+        p = np.einsum("nij,nj->ni", R_[owner], points[rows]) + t_[owner]
         nrm = np.linalg.norm(p, axis=1)
         ph = p / nrm[:, None]
-        r = ph - bearings
+        r = ph - bearings[rows]
         e = np.linalg.norm(r, axis=1)
-        w, _ = robust_weight(e, Loss.HUBER, huber_rad)
+        w, rho = robust_weight(e, Loss.HUBER, huber_rad[pid][owner])
+        return p, nrm, ph, r, w, rho, owner, first
+
+    def cost(pose):
+        *_, rho, _owner, first = residuals(pose)
+        return np.add.reduceat(rho, first)
+
+    def linearize(pose):
+        t_ = pose[1]
+        p, nrm, ph, r, w, _rho, owner, first = residuals(pose)
         # d(ph)/dp = (I - ph ph^T)/|p| ; dp/dw = -[R X]x ; dp/dt = I, and
         # ph^T [R X]x = (ph x R X)^T, so d(ph)/dw = (-[R X]x + ph (ph x R X)^T) / |p|
         proj = (np.eye(3)[None] - ph[:, :, None] * ph[:, None, :]) / nrm[:, None, None]
-        rx = p - t_
+        rx = p - t_[owner]
         d_rot = (ph[:, :, None] * _cross(ph, rx)[:, None, :] - skew(rx)) / nrm[:, None, None]
-        jac = np.concatenate([d_rot, proj], axis=2).reshape(-1, 6)  # (3N, 6)
-        jw = jac * np.repeat(w, 3)[:, None]
-        return jw.T @ jac, jw.T @ r.ravel()
+        jac = np.concatenate([d_rot, proj], axis=2)  # (n, 3, 6)
+        jw = jac * w[:, None, None]
+        H = np.add.reduceat(np.einsum("nki,nkj->nij", jw, jac), first)
+        g = np.add.reduceat(np.einsum("nki,nk->ni", jw, r), first)
+        return H, g
 
     def retract(pose, delta):
-        return so3_exp(delta[:3]) @ pose[0], pose[1] + delta[3:]
+        R_, t_, pid = pose
+        return so3_exp_batch(delta[:, :3]) @ R_, t_ + delta[:, 3:], pid
 
-    fit = levenberg_marquardt(
-        (R, t),
+    fit = levenberg_marquardt_batch(
+        (np.asarray(R, float), np.asarray(t, float), np.arange(seg.size.size)),
         cost,
         linearize,
         retract=retract,
-        converged=lambda _c0, _c1, delta: np.linalg.norm(delta) < 1e-12,
+        converged=lambda _c0, _c1, delta: np.linalg.norm(delta, axis=1) < 1e-12,
         damping=_REFINE_DAMPING,
         max_iterations=n_iter,
     )
-    R, t = fit.x
+    R, t, _ = fit.x
     return nearest_rotation(R), t  # re-orthonormalised
 
 
@@ -553,9 +618,10 @@ def ransac_poses(
         if group:
             _ransac_round(group, batch_size, confidence)
 
-    for p, s in enumerate(states):
-        if results[p] is None:
-            results[p] = _ransac_finish(s, min_inliers, refine)
+    pending = [p for p in range(len(states)) if results[p] is None]
+    finished = _ransac_finish([states[p] for p in pending], min_inliers, refine)
+    for p, r in zip(pending, finished):
+        results[p] = r
     return results
 
 
@@ -637,47 +703,90 @@ def _cosines(R, t, f, x, obs):
         return dot / np.sqrt(np.maximum(norm2, 0.0))
 
 
-def _ransac_finish(s: _RansacState, min_inliers: int, refine: bool) -> PoseResult:
-    """The PoseResult of one problem: its best hypothesis, refined (LM) when asked."""
-    n, threshold_rad = s.n, s.threshold_rad
-    if s.best is None:
-        return PoseResult(
-            np.full((3, 3), np.nan),
-            np.full(3, np.nan),
-            np.zeros(n, bool),
-            0,
-            float("nan"),
-            False,
-            f"no valid P3P solution from {s.drawn} minimal samples of {s.m} observations",
-        )
-    fo, xo = s.fo, s.xo
-    thr2 = threshold_rad**2
-    R_b, t_b = s.best
+def _ransac_finish(states: list[_RansacState], min_inliers: int, refine: bool) -> list:
+    """The PoseResults of many problems: each best hypothesis, refined (LM) when asked.
 
-    def score(R_, t_):
-        ang_ = angular_errors_rad(fo, xo, R_, t_)
-        ang_ = np.nan_to_num(ang_, nan=np.pi)
-        return ang_, float(np.minimum(ang_ * ang_, thr2).sum())
+    A refinement round refits every problem still improving on its inliers (one batched
+    LM, :func:`_refine_poses`) and keeps the refit unless it scores worse; a problem stops
+    when its inlier set no longer changes, after three rounds, or with fewer than four
+    inliers.
+    """
+    out: list = [None] * len(states)
+    todo = []
+    for q, s in enumerate(states):
+        if s.best is None:
+            out[q] = PoseResult(
+                np.full((3, 3), np.nan),
+                np.full(3, np.nan),
+                np.zeros(s.n, bool),
+                0,
+                float("nan"),
+                False,
+                f"no valid P3P solution from {s.drawn} minimal samples of {s.m} observations",
+            )
+        else:
+            todo.append(q)
+    if todo:
+        sub = [states[q] for q in todo]
+        seg = _Segments([s.m for s in sub])
+        fo = np.concatenate([s.fo for s in sub])
+        xo = np.concatenate([s.xo for s in sub])
+        thr = np.array([s.threshold_rad for s in sub])
+        R_b = np.stack([s.best[0] for s in sub])
+        t_b = np.stack([s.best[1] for s in sub])
 
-    ang, cost = score(R_b, t_b)
-    if refine:
-        for _ in range(3):
-            inl = ang < threshold_rad
-            if inl.sum() < 4:
-                break
-            R_r, t_r = _refine_pose(fo[inl], xo[inl], R_b, t_b, huber_rad=threshold_rad / 2)
-            ang_r, cost_r = score(R_r, t_r)
-            if cost_r > cost:
-                break
-            converged = np.array_equal(ang_r < threshold_rad, inl)
-            R_b, t_b, ang, cost = R_r, t_r, ang_r, cost_r
-            if converged:
-                break
+        def score(pid, R_, t_):
+            """Angular errors (rows of ``pid``) and each problem's MSAC cost."""
+            rows, owner, first = seg.rows(pid)
+            p = np.einsum("nij,nj->ni", R_[owner], xo[rows]) + t_[owner]
+            cross = np.linalg.norm(_cross(fo[rows], p), axis=-1)
+            dot = np.einsum("ni,ni->n", p, fo[rows])
+            ang_ = np.nan_to_num(np.arctan2(cross, dot), nan=np.pi)
+            thr_row = thr[pid][owner]
+            return ang_, np.add.reduceat(np.minimum(ang_ * ang_, thr_row * thr_row), first)
 
-    mask = np.zeros(n, bool)
-    mask[s.idx_ok] = ang < threshold_rad
-    n_inl = int(mask.sum())
-    med = float(np.median(ang[ang < threshold_rad])) if n_inl else float("nan")
-    success = n_inl >= min_inliers
-    reason = "" if success else f"RANSAC found {n_inl} inliers of {n} (need {min_inliers})"
-    return PoseResult(R_b, t_b, mask, n_inl, med, success, reason)
+        everyone = np.arange(len(sub))
+        ang, cost = score(everyone, R_b, t_b)
+        live = np.ones(len(sub), bool)
+        rounds = 3 if refine else 0
+        for _ in range(rounds):
+            inl = ang < thr[np.repeat(everyone, seg.size)]
+            n_in = np.add.reduceat(inl.astype(int), seg.start)
+            live &= n_in >= 4
+            pid = np.flatnonzero(live)
+            if not pid.size:
+                break
+            rows, owner, _first = seg.rows(pid)
+            keep = inl[rows]
+            R_r, t_r = _refine_poses(
+                fo[rows][keep],
+                xo[rows][keep],
+                n_in[pid],
+                R_b[pid],
+                t_b[pid],
+                thr[pid] / 2,
+            )
+            ang_r, cost_r = score(pid, R_r, t_r)
+            worse = cost_r > cost[pid]
+            inl_r = ang_r < thr[pid][owner]
+            changed = np.add.reduceat((inl_r != inl[rows]).astype(int), _first) > 0
+            take = ~worse
+            R_b[pid[take]], t_b[pid[take]] = R_r[take], t_r[take]
+            cost[pid[take]] = cost_r[take]
+            row_take = take[owner]
+            ang[rows[row_take]] = ang_r[row_take]
+            live[pid[worse | ~changed]] = False
+        for j, q in enumerate(todo):
+            s = sub[j]
+            a_j = ang[seg.start[j] : seg.start[j] + seg.size[j]]
+            ok = a_j < s.threshold_rad
+            mask = np.zeros(s.n, bool)
+            mask[s.idx_ok] = ok
+            n_inl = int(mask.sum())
+            med = float(np.median(a_j[ok])) if n_inl else float("nan")
+            success = n_inl >= min_inliers
+            reason = (
+                "" if success else f"RANSAC found {n_inl} inliers of {s.n} (need {min_inliers})"
+            )
+            out[q] = PoseResult(R_b[j].copy(), t_b[j].copy(), mask, n_inl, med, success, reason)
+    return out
