@@ -18,24 +18,26 @@ F. Dellaert, "Multi-Level Submap Based SLAM Using Nested Dissection" (IROS
    ``lambda * I`` there and solves the reduced system (SciPy sparse LU);
 3. every worker back-substitutes its interior given the separator's step,
    retracts, and returns its cost at the trial point and its predicted decrease;
-4. the driver accepts the step when the summed cost went down (``lambda``
-   divided by ``lambdaFactor``), or rejects it (``lambda`` multiplied, the
-   workers re-eliminate at the same linearisation point).
+4. the step is accepted when the summed cost went down (``lambda`` divided by
+   ``lambdaFactor``), or rejected (``lambda`` multiplied, the workers
+   re-eliminate at the same linearisation point).
 
+The loop itself (damping, acceptance, convergence, status) is the package's one
+graph LM, :func:`~gtsam_sphere.estimation.optimize.lm_driver`, which the global
+:func:`~gtsam_sphere.estimation.optimize.levenberg_marquardt` runs on one graph;
+:class:`PartitionedBackend` is its linear algebra over the submaps (steps 1-3).
 Every factor lives in exactly one submap (:mod:`.partition`), so the summed
 costs and reduced systems are those of the whole graph: each step is the step
-of the global :func:`~gtsam_sphere.estimation.optimize.levenberg_marquardt`
-(GTSAM's default LM, ``lambda * I`` on every variable) up to rounding, the same
-acceptance, the same convergence test (:func:`decrease_converged`), hence the
-same answer as the global solve. Unlike a consensus scheme (ADMM) nothing is
-approximate and no extra iterations are needed; the price is the separator
-system on the driver (its size is the cut of the covisibility graph, small for
+of the global LM (GTSAM's default LM, ``lambda * I`` on every variable) up to
+rounding, hence the same answer as the global solve. Unlike a consensus scheme
+(ADMM) nothing is approximate and no extra iterations are needed; the price is
+the separator system on the driver (its size is the cut of the covisibility graph, small for
 maps that follow a trajectory).
 
 Where the work runs is an *executor* (:class:`LocalExecutor` here, in process;
 :class:`~gtsam_sphere.estimation.ray_executor.RayExecutor` on a Ray cluster):
 workers each hold some submaps, built once from their data; per iteration only
-the separator step (driver -> worker), the reduced systems and two numbers per
+the separator step (driver -> worker), the reduced systems and three numbers per
 submap (worker -> driver) travel. A worker's current values are returned as
 opaque states (with Ray: object references that stay in the object store), so a
 worker that dies is recreated from its data and its last state and the call is
@@ -49,7 +51,6 @@ from __future__ import annotations
 import hashlib
 import io
 import logging
-import math
 import os
 import resource
 import time
@@ -62,11 +63,10 @@ import numpy as np
 
 from ..core._compat import StrEnum
 from ..core.errors import InputError
-from ..core.least_squares import LMStatus
 from ..io.dataset import write_bytes_atomic
 from .engine import TrustedPass
 from .map_problem import MapProblem, RefineResult, lm_params
-from .optimize import decrease_converged
+from .optimize import LambdaDamping, LMIteration, lm_driver
 from .partition import covisibility_partition, separator_keys
 
 logger = logging.getLogger(__name__)
@@ -74,6 +74,7 @@ logger = logging.getLogger(__name__)
 __all__ = [
     "Engine",
     "LocalExecutor",
+    "PartitionedBackend",
     "PartitionedOptions",
     "SubmapHost",
     "SubmapWorker",
@@ -182,17 +183,9 @@ class SubmapWorker:
         self.dims.update({int(k): 3 for k in self.point_keys})
         self._counter = 0
         self._values: dict[str, tuple[gtsam.Values, TrustedPass]] = {}
-        self._linear: tuple | None = None  # (token, lam, lin, bayes net)
-        # lambda * I on the interior variables: one factor each, sigma set per trial
-        self._damping = gtsam.GaussianFactorGraph()
-        for k in self.interior:
-            d = self.dims[k]
-            self._damping.add(
-                gtsam.JacobianFactor(k, np.eye(d), np.zeros(d), gtsam.noiseModel.Unit.Create(d))
-            )
-        self._damping_factors = [
-            (self._damping.at(q), self.dims[k]) for q, k in enumerate(self.interior)
-        ]
+        self._linear: tuple | None = None  # (token, lam, lin, bayes net, separator factors)
+        # lambda * I on the interior variables (the driver damps the separator)
+        self._damping = LambdaDamping((k, self.dims[k]) for k in self.interior)
 
     # ------------------------------------------------------------------ states
 
@@ -238,21 +231,32 @@ class SubmapWorker:
         with passes:
             return float(self.built.graph.error(values))
 
+    def _linearization(self, state: dict) -> gtsam.GaussianFactorGraph:
+        if self._linear is not None and self._linear[0] == state["token"]:
+            return self._linear[2]
+        values, passes = self._at(state)
+        with passes:
+            lin = self.built.graph.linearize(values)
+        self._linear = (state["token"], None, lin, None, None)
+        return lin
+
+    def linearize(self, state: dict) -> float:
+        """Linearise at ``state`` (kept for :meth:`reduce` and :meth:`step`).
+
+        Returns
+        -------
+        float
+            The linearised cost at the zero step.
+        """
+        lin = self._linearization(state)
+        values, _ = self._at(state)
+        return float(lin.error(values.zeroVectors()))
+
     def _eliminate(self, state: dict, lam: float):
         if self._linear is not None and self._linear[:2] == (state["token"], lam):
             return self._linear
-        values, passes = self._at(state)
-        if self._linear is not None and self._linear[0] == state["token"]:
-            lin = self._linear[2]
-        else:
-            with passes:
-                lin = self.built.graph.linearize(values)
-        sigma = 1.0 / math.sqrt(lam)
-        for factor, d in self._damping_factors:
-            factor.setModel(False, np.full(d, sigma))
-        damped = gtsam.GaussianFactorGraph()
-        damped.push_back(lin)
-        damped.push_back(self._damping)
+        lin = self._linearization(state)
+        damped = self._damping.damped(lin, lam)
         if self.separator:
             bayes, rest = damped.eliminatePartialSequential(self.interior)
         else:
@@ -513,6 +517,77 @@ def _solve_separator(reduced: list[dict], lam: float):
     return offset, x
 
 
+class PartitionedBackend:
+    """:class:`~gtsam_sphere.estimation.optimize.LMBackend` of submaps on an executor.
+
+    The state is one opaque state per submap (with Ray: object references). Per
+    :meth:`solve`, every worker eliminates its interior (``reduce``), the driver
+    solves the damped separator system (:func:`_solve_separator`) and every
+    worker back-substitutes, retracts and evaluates its trial (``step``): the
+    trial's cost comes back with the predicted decrease, in one round trip.
+
+    Parameters
+    ----------
+    executor : LocalExecutor or RayExecutor
+    n_parts : int
+    states : list
+        The submaps' current states.
+
+    Attributes
+    ----------
+    states : list
+        The current states.
+    separator_dim : int
+        Dimension of the last separator system solved.
+    """
+
+    def __init__(self, executor, n_parts: int, states: list):
+        self.executor = executor
+        self.n_parts = n_parts
+        self.states = states
+        self.separator_dim = 0
+        self._trial: tuple[float, list] | None = None
+
+    def _each(self, method: str, *args) -> list:
+        ex = self.executor
+        return ex.get([ex.call(k, method, self.states[k], *args) for k in range(self.n_parts)])
+
+    def error(self) -> float:
+        """The summed cost of the current states."""
+        return float(sum(self._each("error")))
+
+    def linearize(self) -> float:
+        """Every submap linearises at its state; the summed linearised cost at zero."""
+        return float(sum(self._each("linearize")))
+
+    def solve(self, lam: float) -> float | None:
+        """Reduce, solve the separator, step every submap (the trial's cost kept)."""
+        ex = self.executor
+        reduced = self._each("reduce", lam)
+        solved = _solve_separator(reduced, lam)
+        if solved is None:
+            return None
+        offset, x = solved
+        self.separator_dim = len(x)
+        calls = []
+        for k in range(self.n_parts):
+            keys = reduced[k]["keys"]
+            idx = [np.arange(offset[q], offset[q] + d) for q, d in zip(keys, reduced[k]["dims"])]
+            delta = x[np.concatenate(idx)] if idx else np.zeros(0)
+            calls.append(ex.call(k, "step", self.states[k], lam, keys, delta, num_returns=2))
+        summaries = ex.get([c[0] for c in calls])
+        self._trial = (float(sum(s["error"] for s in summaries)), [c[1] for c in calls])
+        return float(sum(s["predicted"] for s in summaries))
+
+    def evaluate(self) -> float:
+        """The summed cost of the trial (evaluated by the workers' ``step``)."""
+        return self._trial[0]
+
+    def accept(self) -> None:
+        """The trial states become the current ones."""
+        self.states = self._trial[1]
+
+
 def refine_partitioned(
     executor,
     n_parts: int,
@@ -521,6 +596,9 @@ def refine_partitioned(
     on_iteration: Callable[[int, dict], None] | None = None,
 ) -> tuple[list[dict], dict]:
     """Levenberg-Marquardt over submaps with the separator solved centrally (see the module).
+
+    :func:`~gtsam_sphere.estimation.optimize.lm_driver` on a
+    :class:`PartitionedBackend`, with a checkpoint after each accepted iteration.
 
     Parameters
     ----------
@@ -556,8 +634,7 @@ def refine_partitioned(
     resumed = _load_checkpoint(opts.checkpoint, fingerprint)
     if resumed is not None:
         first_iteration, lam, error, loaded = resumed
-        states = [executor.put(s) for s in loaded]
-        initial_error = error
+        backend = PartitionedBackend(executor, n_parts, [executor.put(s) for s in loaded])
         if progress:
             progress(
                 f"resumed from {opts.checkpoint}: iteration {first_iteration}, cost {error:.6e}"
@@ -565,85 +642,39 @@ def refine_partitioned(
     else:
         first_iteration, lam = 0, p.getlambdaInitial()
         states = [executor.call(k, "initial_state") for k in range(n_parts)]
-        error = float(
-            sum(executor.get([executor.call(k, "error", states[k]) for k in range(n_parts)]))
-        )
-        initial_error = error
+        backend = PartitionedBackend(executor, n_parts, states)
+        error = backend.error()
     if progress:
         progress(f"iteration {first_iteration:3d}  cost {error:.6e}  ({n_parts} submaps)")
-    info = {
-        "initial_error": initial_error,
-        "iteration_s": [],
-        "resumed_from": resumed and resumed[0],
-    }
-    status = LMStatus.MAX_ITERATIONS
-    sep_dim = 0
-    iteration = first_iteration
-    while iteration < p.getMaxIterations():
-        t0 = time.perf_counter()
-        accepted = False
-        while lam <= p.getlambdaUpperBound():
-            reduced = executor.get(
-                [executor.call(k, "reduce", states[k], lam) for k in range(n_parts)]
-            )
-            solved = _solve_separator(reduced, lam)
-            if solved is None:  # as GTSAM's LM: an indeterminate system is a failed step
-                lam *= p.getlambdaFactor()
-                continue
-            offset, x = solved
-            sep_dim = len(x)
-            calls = []
-            for k in range(n_parts):
-                keys = reduced[k]["keys"]
-                idx = [
-                    np.arange(offset[q], offset[q] + d) for q, d in zip(keys, reduced[k]["dims"])
-                ]
-                delta = x[np.concatenate(idx)] if idx else np.zeros(0)
-                calls.append(executor.call(k, "step", states[k], lam, keys, delta, num_returns=2))
-            summaries = executor.get([c[0] for c in calls])
-            trial_error = float(sum(s["error"] for s in summaries))
-            predicted = float(sum(s["predicted"] for s in summaries))
-            if trial_error < error and predicted > 0:
-                lam = max(lam / p.getlambdaFactor(), p.getlambdaLowerBound())
-                accepted = True
-                break
-            lam *= p.getlambdaFactor()
-        info["iteration_s"].append(time.perf_counter() - t0)
-        iteration += 1
-        if not accepted:
-            status = LMStatus.STALLED
-            break
-        previous = error
-        states, error = [c[1] for c in calls], trial_error
+
+    def report(it: LMIteration) -> None:
         if progress:
             progress(
-                f"iteration {iteration:3d}  cost {error:.6e}  lambda {lam:.1e}  "
-                f"separator {sep_dim}  {info['iteration_s'][-1]:.2f} s"
+                f"iteration {it.iteration:3d}  cost {it.error:.6e}  lambda {it.lam:.1e}  "
+                f"separator {backend.separator_dim}  {it.seconds:.2f} s"
             )
-        done = (
-            decrease_converged(previous, error, p.getAbsoluteErrorTol(), p.getRelativeErrorTol())
-            or error < p.getErrorTol()
-        )
-        if opts.checkpoint is not None and not done:
+        if opts.checkpoint is not None and not it.converged:
             _save_checkpoint(
-                opts.checkpoint, fingerprint, iteration, lam, error, executor.get(states)
+                opts.checkpoint,
+                fingerprint,
+                it.iteration,
+                it.lam,
+                it.error,
+                executor.get(backend.states),
             )
         if on_iteration is not None:
-            on_iteration(iteration, {"error": error, "lambda": lam})
-        if done:
-            status = LMStatus.CONVERGED
-            break
-    final = executor.get(states)
+            on_iteration(it.iteration, {"error": it.error, "lambda": it.lam})
+
+    run = lm_driver(backend, p, error, lam=lam, iteration=first_iteration, on_iteration=report)
+    final = executor.get(backend.states)
     if opts.checkpoint is not None and not opts.keep_checkpoint:
         Path(opts.checkpoint).unlink(missing_ok=True)
-    info.update(
-        iterations=iteration,
-        error=error,
-        status=status,
-        separator_dim=sep_dim,
-        converged=status is LMStatus.CONVERGED,
-        **{"lambda": lam},
-    )
+    info = {
+        "initial_error": error,
+        "resumed_from": resumed and resumed[0],
+        **run,
+        "separator_dim": backend.separator_dim,
+    }
     return final, info
 
 
