@@ -648,9 +648,9 @@ class _ExpBackend:
     def cost(x: float) -> float:
         return 0.5 * (np.exp(x) - 2.0) ** 2
 
-    def linearize(self) -> float:
+    def linearize(self) -> None:
         self.J, self.r = np.exp(self.x), np.exp(self.x) - 2.0
-        return 0.5 * self.r**2
+        self.model_cost = 0.5 * self.r**2
 
     def solve(self, lam: float):
         self.lams.append(lam)

@@ -289,8 +289,12 @@ class LMBackend(Protocol):
     workers, the separator solved centrally).
     """
 
-    def linearize(self) -> float:
-        """Linearise at the current state; returns the linearised cost at the zero step."""
+    #: the current linearisation's cost at the zero step (set by :meth:`linearize` or,
+    #: at the latest, by the :meth:`solve` after it)
+    model_cost: float
+
+    def linearize(self) -> None:
+        """Linearise at the current state (or have the next :meth:`solve` do it)."""
 
     def solve(self, lam: float) -> float | None:
         """Solve the linear system damped by ``lambda * I``.
@@ -401,7 +405,7 @@ def lm_driver(
     status = LMStatus.MAX_ITERATIONS
     while iteration < p.getMaxIterations():
         t0 = time.perf_counter()
-        model = backend.linearize()
+        backend.linearize()
         accepted = negligible = False
         while gtsam_steps or lam <= p.getlambdaUpperBound():
             predicted = backend.solve(lam)
@@ -415,6 +419,7 @@ def lm_driver(
                 # model's fidelity exceeds its floor; a negligible cost change ends the
                 # search for a damping without a step
                 success = False
+                model = backend.model_cost
                 if predicted < 0 and -predicted <= _ROUNDING * model:
                     # no decrease beyond rounding at any damping (perfect data at the
                     # noise floor): converged, where GTSAM would raise lambda to its bound
@@ -510,19 +515,18 @@ class GraphBackend:
         self.zero = self.values.zeroVectors()
         self.damping = LambdaDamping((k, len(self.zero.at(k))) for k in self.values.keys())
         self.lin = self.delta = self._trial = None
-        self._model = math.nan
+        self.model_cost = math.nan
         self._first_trial = True
 
-    def linearize(self) -> float:
+    def linearize(self) -> None:
         """Linearise at the current state (the Jacobians its evaluation computed)."""
         with self.passes:
             self.lin = self.graph.linearize(self.values)
         if self.ordering is None:
             self.ordering = gtsam.Ordering.Colamd(gtsam.VariableIndex(self.lin))
-        self._model = self.lin.error(self.zero)
+        self.model_cost = self.lin.error(self.zero)
         # after a rejected step, evaluate the next trials' cost only
         self._first_trial = True
-        return self._model
 
     def solve(self, lam: float) -> float | None:
         """Multifrontal elimination of the damped system (Cholesky preferred)."""
@@ -532,7 +536,7 @@ class GraphBackend:
             if "ndeterminate" not in str(exc):
                 raise
             return None
-        return self._model - self.lin.error(self.delta)
+        return self.model_cost - self.lin.error(self.delta)
 
     def evaluate(self) -> float:
         """Retract and evaluate; the first trial of an iteration also computes Jacobians."""

@@ -36,7 +36,9 @@ maps that follow a trajectory).
 
 Where the work runs is an *executor* (:class:`LocalExecutor` here, in process;
 :class:`~gtsam_sphere.estimation.ray_executor.RayExecutor` on a Ray cluster):
-workers each hold some submaps, built once from their data; per iteration only
+workers each hold some submaps, built once from their data (or, for less memory,
+only ``resident`` of them alive and the others made again from their data when
+called: :class:`SubmapHost`); per iteration only
 the separator step (driver -> worker), the reduced systems and three numbers per
 submap (worker -> driver) travel. A worker's current values are returned as
 opaque states (with Ray: object references that stay in the object store), so a
@@ -48,9 +50,11 @@ a run started again with the same checkpoint path resumes from it.
 
 from __future__ import annotations
 
+import ctypes
 import hashlib
 import io
 import logging
+import math
 import os
 import resource
 import time
@@ -183,7 +187,8 @@ class SubmapWorker:
         self.dims.update({int(k): 3 for k in self.point_keys})
         self._counter = 0
         self._values: dict[str, tuple[gtsam.Values, TrustedPass]] = {}
-        self._linear: tuple | None = None  # (token, lam, lin, bayes net, separator factors)
+        self._linear: tuple | None = None  # (token, linearisation, its cost at zero)
+        self._elimination: tuple | None = None  # (token, lam, Bayes net of the interior)
         # lambda * I on the interior variables (the driver damps the separator)
         self._damping = LambdaDamping((k, self.dims[k]) for k in self.interior)
 
@@ -231,38 +236,27 @@ class SubmapWorker:
         with passes:
             return float(self.built.graph.error(values))
 
-    def _linearization(self, state: dict) -> gtsam.GaussianFactorGraph:
+    def _linearization(self, state: dict) -> tuple[gtsam.GaussianFactorGraph, float]:
+        """The linearisation at ``state`` and its cost at the zero step (made once a state)."""
         if self._linear is not None and self._linear[0] == state["token"]:
-            return self._linear[2]
+            return self._linear[1:]
+        self._linear = self._elimination = None  # one linearisation alive at a time
         values, passes = self._at(state)
         with passes:
             lin = self.built.graph.linearize(values)
-        self._linear = (state["token"], None, lin, None, None)
-        return lin
-
-    def linearize(self, state: dict) -> float:
-        """Linearise at ``state`` (kept for :meth:`reduce` and :meth:`step`).
-
-        Returns
-        -------
-        float
-            The linearised cost at the zero step.
-        """
-        lin = self._linearization(state)
-        values, _ = self._at(state)
-        return float(lin.error(values.zeroVectors()))
+        self._linear = (state["token"], lin, float(lin.error(values.zeroVectors())))
+        return self._linear[1:]
 
     def _eliminate(self, state: dict, lam: float):
-        if self._linear is not None and self._linear[:2] == (state["token"], lam):
-            return self._linear
-        lin = self._linearization(state)
+        """``(bayes net, separator factors)`` of the interior's elimination, damped by ``lam``."""
+        lin, _ = self._linearization(state)
         damped = self._damping.damped(lin, lam)
         if self.separator:
             bayes, rest = damped.eliminatePartialSequential(self.interior)
         else:
             bayes, rest = damped.eliminateSequential(), None
-        self._linear = (state["token"], lam, lin, bayes, rest)
-        return self._linear
+        self._elimination = (state["token"], lam, bayes)
+        return bayes, rest
 
     def reduce(self, state: dict, lam: float) -> dict:
         """Eliminate the interior (damped by ``lam``): the Schur complement on the separator.
@@ -279,11 +273,19 @@ class SubmapWorker:
             ``keys`` (list of int, separator keys of this submap, the Hessian's
             order), ``dims`` (list of int), ``information`` (n, n) and ``linear``
             (n,): the reduced cost ``0.5 (c - 2 x^T linear + x^T information x)``
-            of a separator step ``x``.
+            of a separator step ``x``; ``model`` (float): the undamped linearised
+            cost at the zero step.
         """
-        *_, rest = self._eliminate(state, lam)
+        _, rest = self._eliminate(state, lam)
+        _, model = self._linearization(state)
         if rest is None or rest.size() == 0:
-            return {"keys": [], "dims": [], "information": np.zeros((0, 0)), "linear": np.zeros(0)}
+            return {
+                "keys": [],
+                "dims": [],
+                "information": np.zeros((0, 0)),
+                "linear": np.zeros(0),
+                "model": model,
+            }
         hessian = gtsam.HessianFactor(rest)
         keys = [int(k) for k in hessian.keys()]
         return {
@@ -291,10 +293,17 @@ class SubmapWorker:
             "dims": [self.dims[k] for k in keys],
             "information": np.array(hessian.information(), dtype=float, copy=True),
             "linear": np.array(hessian.linearTerm(), dtype=float, copy=True).reshape(-1),
+            "model": model,
         }
 
     def step(self, state: dict, lam: float, keys: list, delta: np.ndarray):
         """Back-substitute the interior given the separator step, retract, evaluate.
+
+        The linearisation and the elimination :meth:`reduce` made are used here
+        (made again if this worker has not kept them: after a restart, or when its
+        host holds more submaps than it keeps resident) and then dropped: they
+        would serve only a rejected step's next :meth:`reduce`, which linearises
+        again, and are not held through the trial's evaluation (the peak memory).
 
         Parameters
         ----------
@@ -313,7 +322,11 @@ class SubmapWorker:
         trial : dict
             The trial state.
         """
-        _, _, lin, bayes, _ = self._eliminate(state, lam)
+        if self._elimination is not None and self._elimination[:2] == (state["token"], lam):
+            bayes = self._elimination[2]
+        else:
+            bayes, _ = self._eliminate(state, lam)
+        lin, model = self._linearization(state)
         given = gtsam.VectorValues()
         at = 0
         for k in keys:
@@ -321,9 +334,11 @@ class SubmapWorker:
             given.insert(int(k), np.asarray(delta[at : at + d], float))
             at += d
         step = bayes.optimize(given) if self.separator else bayes.optimize()
+        predicted = model - lin.error(step)
+        del lin, bayes
+        self._linear = self._elimination = None
+        release_freed_memory()
         values, _ = self._at(state)
-        zero = values.zeroVectors()
-        predicted = lin.error(zero) - lin.error(step)
         trial = values.retract(step)
         passes = TrustedPass(trial, jacobians=True)
         with passes:
@@ -331,6 +346,27 @@ class SubmapWorker:
         new_state = self._state_of(trial)
         self._remember(new_state["token"], trial, passes)
         return {"error": error, "predicted": float(predicted)}, new_state
+
+
+def release_freed_memory() -> None:
+    """Hand the C heap's free pages back to the system (glibc's ``malloc_trim``).
+
+    A linearisation is many small C++ allocations; freed, glibc keeps their pages
+    (the process's resident size does not fall) while the next evaluation's numpy
+    temporaries are mapped afresh, so both count in the peak. Elsewhere than
+    glibc: nothing.
+    """
+    global _MALLOC_TRIM
+    if _MALLOC_TRIM is None:
+        try:
+            _MALLOC_TRIM = ctypes.CDLL("libc.so.6").malloc_trim
+        except (OSError, AttributeError):
+            _MALLOC_TRIM = False
+    if _MALLOC_TRIM:
+        _MALLOC_TRIM(0)
+
+
+_MALLOC_TRIM = None
 
 
 class SubmapHost:
@@ -345,29 +381,64 @@ class SubmapHost:
         :class:`~gtsam_sphere.simulate.building.BuildingPart`) is built here, in
         the worker, so the whole map never exists in one process.
     separator : ndarray of uint64
+    resident : int or None
+        Submaps whose :class:`SubmapWorker` (graph, factor engine, values) stays
+        alive between calls; the others keep only their data (a
+        :class:`MapProblem`: tens of bytes per observation, against kilobytes for a
+        worker) and their worker is made again when called, in the place of the
+        worker made last (the same results; the graph's construction, a
+        linearisation and an elimination more per call). None: all (no submap is
+        made twice).
     """
 
-    def __init__(self, parts: list[int], submaps: list, separator: np.ndarray):
+    def __init__(
+        self,
+        parts: list[int],
+        submaps: list,
+        separator: np.ndarray,
+        resident: int | None = None,
+    ):
         t0 = time.process_time()
         submaps = [s if isinstance(s, MapProblem) else s.build() for s in submaps]
-        self.workers = {int(k): SubmapWorker(int(k), s, separator) for k, s in zip(parts, submaps)}
+        self.separator = np.asarray(separator, np.uint64)
+        self.problems = {int(k): s for k, s in zip(parts, submaps)}
+        self.resident = None if resident is None else max(1, int(resident))
+        self.workers: dict[int, SubmapWorker] = {}  # alive, in the order they were made
+        self.workers_made = 0
+        if self.resident is None:
+            for k in self.problems:
+                self._worker(k)
         self.fingerprints = {int(k): _fingerprint(s) for k, s in zip(parts, submaps)}
         self.nbytes = {int(k): s.nbytes() for k, s in zip(parts, submaps)}
         self.n_observations = {int(k): s.n_observations for k, s in zip(parts, submaps)}
         self.build_cpu_s = time.process_time() - t0
         self.solve_cpu_s = 0.0
 
+    def _worker(self, part: int) -> SubmapWorker:
+        worker = self.workers.get(part)
+        if worker is None:
+            if self.resident is not None and len(self.workers) >= self.resident:
+                # the submaps are called in turn, each once per round: the most recently
+                # made goes (least recently used would make every one again each round),
+                # and out before the new one is made (one at a time in memory)
+                self.workers.popitem()
+                release_freed_memory()
+            worker = self.workers[part] = SubmapWorker(part, self.problems[part], self.separator)
+            self.workers_made += 1
+        return worker
+
     def call(self, part: int, method: str, *args):
         """Run ``SubmapWorker.method(*args)`` of submap ``part`` (its CPU time is counted)."""
         t0 = time.process_time()
         try:
-            return getattr(self.workers[int(part)], method)(*args)
+            return getattr(self._worker(int(part)), method)(*args)
         finally:
             self.solve_cpu_s += time.process_time() - t0
 
     def info(self) -> dict:
         """Process id, peak resident memory (MB), CPU seconds (all, building the
-        submaps, in the solver's calls), data bytes, observations and fingerprints."""
+        submaps, in the solver's calls), data bytes, observations, fingerprints and
+        the number of :class:`SubmapWorker` s made (``workers_made``)."""
         return {
             "pid": os.getpid(),
             "peak_rss_mb": peak_rss_mb(),
@@ -377,6 +448,7 @@ class SubmapHost:
             "nbytes": dict(self.nbytes),
             "n_observations": dict(self.n_observations),
             "fingerprints": dict(self.fingerprints),
+            "workers_made": self.workers_made,
         }
 
 
@@ -407,11 +479,15 @@ class LocalExecutor:
     ----------
     submaps : list of MapProblem
     separator : ndarray of uint64
+    resident : int or None
+        As :class:`SubmapHost` (None: every submap's worker alive throughout).
     """
 
-    def __init__(self, submaps: list[MapProblem], separator: np.ndarray):
+    def __init__(
+        self, submaps: list[MapProblem], separator: np.ndarray, resident: int | None = None
+    ):
         self.n_parts = len(submaps)
-        self.host = SubmapHost(list(range(len(submaps))), submaps, separator)
+        self.host = SubmapHost(list(range(len(submaps))), submaps, separator, resident)
 
     def call(self, part: int, method: str, *args, num_returns: int = 1):
         """Run the method now; returns its result (a tuple for two returns)."""
@@ -539,6 +615,8 @@ class PartitionedBackend:
         The current states.
     separator_dim : int
         Dimension of the last separator system solved.
+    model_cost : float
+        The summed linearised cost at the zero step (the workers' ``reduce``).
     """
 
     def __init__(self, executor, n_parts: int, states: list):
@@ -546,6 +624,7 @@ class PartitionedBackend:
         self.n_parts = n_parts
         self.states = states
         self.separator_dim = 0
+        self.model_cost = math.nan
         self._trial: tuple[float, list] | None = None
 
     def _each(self, method: str, *args) -> list:
@@ -556,14 +635,15 @@ class PartitionedBackend:
         """The summed cost of the current states."""
         return float(sum(self._each("error")))
 
-    def linearize(self) -> float:
-        """Every submap linearises at its state; the summed linearised cost at zero."""
-        return float(sum(self._each("linearize")))
+    def linearize(self) -> None:
+        """Nothing here: each worker linearises in its first ``reduce`` at a new state."""
+        self.model_cost = math.nan
 
     def solve(self, lam: float) -> float | None:
         """Reduce, solve the separator, step every submap (the trial's cost kept)."""
         ex = self.executor
         reduced = self._each("reduce", lam)
+        self.model_cost = float(sum(r["model"] for r in reduced))
         solved = _solve_separator(reduced, lam)
         if solved is None:
             return None
