@@ -51,6 +51,7 @@ a run started again with the same checkpoint path resumes from it.
 from __future__ import annotations
 
 import ctypes
+import gc
 import hashlib
 import io
 import logging
@@ -423,7 +424,12 @@ class SubmapHost:
                 # and out before the new one is made (one at a time in memory)
                 self.workers.popitem()
                 release_freed_memory()
-            worker = self.workers[part] = SubmapWorker(part, self.problems[part], self.separator)
+            gc.disable()  # tens of thousands of objects: the collector would scan them often
+            try:
+                worker = SubmapWorker(part, self.problems[part], self.separator)
+            finally:
+                gc.enable()
+            self.workers[part] = worker
             self.workers_made += 1
         return worker
 
