@@ -27,7 +27,12 @@ from gtsam_sphere.estimation.external import (
     model_scale_px_per_rad,
 )
 from gtsam_sphere.estimation.graph import point_key, pose_key
-from gtsam_sphere.estimation.optimize import OptimizerOptions, make_ordering, optimize
+from gtsam_sphere.estimation.optimize import (
+    OptimizerOptions,
+    lm_driver,
+    make_ordering,
+    optimize,
+)
 from gtsam_sphere.io.calibration import Calibration
 from gtsam_sphere.simulate.building import fisheye_camera, simulate_building
 
@@ -631,6 +636,57 @@ def test_levenberg_marquardt_status_means_what_optimize_means():
     _, info = levenberg_marquardt(graph, at_optimum)
     assert info["status"] is LMStatus.STALLED and not info["converged"]
     assert info["iterations"] == 1
+
+
+class _ExpBackend:
+    """LMBackend of the residual ``exp(x) - 2`` (Gauss-Newton); its first solve is indeterminate."""
+
+    def __init__(self, x: float):
+        self.x, self.lams, self.delta, self.trial = x, [], 0.0, x
+
+    @staticmethod
+    def cost(x: float) -> float:
+        return 0.5 * (np.exp(x) - 2.0) ** 2
+
+    def linearize(self) -> None:
+        self.J, self.r = np.exp(self.x), np.exp(self.x) - 2.0
+        self.model_cost = 0.5 * self.r**2
+
+    def solve(self, lam: float):
+        self.lams.append(lam)
+        if len(self.lams) == 1:
+            return None
+        self.delta = -self.J * self.r / (self.J**2 + lam)
+        return 0.5 * self.r**2 - 0.5 * (self.r + self.J * self.delta) ** 2
+
+    def evaluate(self) -> float:
+        self.trial = self.x + self.delta
+        return self.cost(self.trial)
+
+    def accept(self) -> None:
+        self.x = self.trial
+
+
+def test_lm_driver_damping_schedule_status_and_resumed_count():
+    """The one LM loop: an indeterminate system and rejected steps multiply lambda by 10,
+    an accepted step divides it; a resumed run counts its earlier iterations; it ends
+    converged at the optimum, the hook told so only after the last iteration."""
+    backend = _ExpBackend(-3.0)
+    seen = []
+    params = gtsam.LevenbergMarquardtParams()
+    info = lm_driver(backend, params, backend.cost(-3.0), iteration=3, on_iteration=seen.append)
+    # 1e-5 indeterminate, 1e-4 .. 1e-2 overshoot (exp(x) - 2 is nearly flat at -3), 1e-1 lowers
+    # the cost; the next iteration starts at 1e-2
+    assert backend.lams[:6] == pytest.approx([1e-5, 1e-4, 1e-3, 1e-2, 1e-1, 1e-2], rel=1e-12)
+    assert seen[0].iteration == 4 and seen[0].lam == pytest.approx(1e-2, rel=1e-12)
+    assert info["status"] is LMStatus.CONVERGED and info["converged"]
+    assert [it.converged for it in seen] == [False] * (len(seen) - 1) + [True]
+    assert info["iterations"] == seen[-1].iteration == 3 + len(info["iteration_s"])
+    assert backend.x == pytest.approx(np.log(2.0), abs=1e-3)
+    assert info["error"] == backend.cost(backend.x)
+    params.setMaxIterations(5)
+    done = lm_driver(_ExpBackend(0.0), params, 1.0, iteration=5)
+    assert done["iterations"] == 5 and done["status"] is LMStatus.MAX_ITERATIONS
 
 
 def test_optimize_lm_takes_gtsams_steps_with_the_given_ordering(small_scene):

@@ -48,6 +48,29 @@ def test_partitioned_solve_equals_the_global_solve_and_the_truth(small_map, glob
     assert final < 0.15 * start
 
 
+def test_host_keeping_one_submap_alive_gives_the_same_answer_bit_for_bit(small_map):
+    """A host of 3 submaps that keeps 1 worker alive makes the others again from their data
+    at each call: the same steps, to the last bit, and never more than 1 alive."""
+    from gtsam_sphere.estimation.partitioned import LocalExecutor
+
+    problem = small_map[1]
+    hosts = []
+
+    def one_resident(submaps, separator):
+        hosts.append(LocalExecutor(submaps, separator, resident=1))
+        return hosts[-1]
+
+    reference = refine_map(problem, 3)
+    result = refine_map(problem, 3, executor_factory=one_resident)
+    assert result.error == reference.error and result.iterations == reference.iterations
+    np.testing.assert_array_equal(result.points_world, reference.points_world)
+    np.testing.assert_array_equal(result.world_from_cam_R, reference.world_from_cam_R)
+    host = hosts[0].host
+    assert len(host.workers) == 1
+    assert host.workers_made >= 3 * 2 * result.iterations  # reduce and step each make one
+    assert reference.stats["workers"][0]["workers_made"] == 3
+
+
 def test_partition_balances_observations_and_cuts_at_doors(small_map):
     scene, problem = small_map
     part = covisibility_partition(problem.obs_image, problem.obs_point, 4, problem.n_images)

@@ -2,10 +2,15 @@
 
 :func:`optimize` wraps GTSAM's optimizers, iterating one step at a time so that
 progress is shown and the cost history is kept (the paper's Figure 5).
-:func:`levenberg_marquardt` is the package's one Python-driven LM, for graphs of
-many engine blocks (no copy of the ``Values`` per callback); both share the
-convergence test (:func:`decrease_converged`) and the meaning of converged and
-stalled (:class:`~gtsam_sphere.core.least_squares.LMStatus`).
+:func:`lm_driver` is the package's one Python-driven LM loop (damping, acceptance,
+convergence, status) over an :class:`LMBackend` that holds the state and does the
+linear algebra: :class:`GraphBackend` for one factor graph
+(:func:`levenberg_marquardt`, for graphs of many engine blocks: no copy of the
+``Values`` per callback) and
+:class:`~gtsam_sphere.estimation.partitioned.PartitionedBackend` for submaps on
+workers. All share the convergence test (:func:`decrease_converged`) and the
+meaning of converged and stalled
+(:class:`~gtsam_sphere.core.least_squares.LMStatus`).
 """
 
 from __future__ import annotations
@@ -15,6 +20,7 @@ import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import gtsam
 import numpy as np
@@ -250,6 +256,303 @@ _EPS = float(np.finfo(float).eps)
 _ROUNDING = 64.0 * _EPS
 
 
+@dataclass(frozen=True)
+class LMIteration:
+    """One iteration of :func:`lm_driver`, as its ``on_iteration`` hook sees it.
+
+    Attributes
+    ----------
+    iteration : int
+        Iterations done (a resumed run's earlier ones included).
+    error : float
+        Cost of the current state (after the step when one was taken; GTSAM's error).
+    lam : float
+        The damping ``lambda`` the next iteration starts from.
+    seconds : float
+        Wall-clock time of the iteration (s).
+    converged : bool
+        The run ends converged after this iteration.
+    """
+
+    iteration: int
+    error: float
+    lam: float
+    seconds: float
+    converged: bool
+
+
+class LMBackend(Protocol):
+    """The state and linear algebra behind :func:`lm_driver`.
+
+    Implementations: :class:`GraphBackend` (a factor graph in this process) and
+    :class:`~gtsam_sphere.estimation.partitioned.PartitionedBackend` (submaps on
+    workers, the separator solved centrally).
+    """
+
+    #: the current linearisation's cost at the zero step (set by :meth:`linearize` or,
+    #: at the latest, by the :meth:`solve` after it)
+    model_cost: float
+
+    def linearize(self) -> None:
+        """Linearise at the current state (or have the next :meth:`solve` do it)."""
+
+    def solve(self, lam: float) -> float | None:
+        """Solve the linear system damped by ``lambda * I``.
+
+        Returns the step's predicted decrease of the undamped linearised cost, or
+        None when the damped system is indeterminate (a failed step).
+        """
+
+    def evaluate(self) -> float:
+        """The cost at the trial point: the current state retracted by the last step solved."""
+
+    def accept(self) -> None:
+        """Make the last evaluated trial point the current state."""
+
+
+class LambdaDamping:
+    """The damping ``lambda * I`` on some variables, as GTSAM's LM adds it to a linear system.
+
+    One unit ``gtsam.JacobianFactor`` per variable, built once; :meth:`damped` sets
+    their sigma ``1 / sqrt(lambda)`` (``setModel`` gives the isotropic model of
+    equal sigmas) and appends them to a linearisation.
+
+    Parameters
+    ----------
+    dims : iterable of (int, int)
+        ``(key, dimension)`` of each damped variable (tangent-space dimension).
+    """
+
+    def __init__(self, dims):
+        self.graph = gtsam.GaussianFactorGraph()
+        ds = []
+        for k, d in dims:
+            self.graph.add(
+                gtsam.JacobianFactor(k, np.eye(d), np.zeros(d), gtsam.noiseModel.Unit.Create(d))
+            )
+            ds.append(d)
+        # the graph's own factors (add() stores a copy): setModel acts on what the solver sees
+        self._factors = [(self.graph.at(q), d) for q, d in enumerate(ds)]
+
+    def damped(self, lin: gtsam.GaussianFactorGraph, lam: float) -> gtsam.GaussianFactorGraph:
+        """``lin`` and ``lambda * I`` on the damped variables (a new graph; ``lin`` is shared)."""
+        sigma = 1.0 / math.sqrt(lam)
+        sigmas: dict[int, np.ndarray] = {}
+        for factor, d in self._factors:
+            sig = sigmas.get(d)
+            if sig is None:
+                sig = sigmas[d] = np.full(d, sigma)
+            factor.setModel(False, sig)
+        damped = gtsam.GaussianFactorGraph()
+        damped.push_back(lin)
+        damped.push_back(self.graph)
+        return damped
+
+
+def lm_driver(
+    backend: LMBackend,
+    params: gtsam.LevenbergMarquardtParams,
+    error: float,
+    *,
+    lam: float | None = None,
+    iteration: int = 0,
+    gtsam_steps: bool = False,
+    on_iteration: Callable[[LMIteration], None] | None = None,
+) -> dict:
+    """The package's one graph Levenberg-Marquardt loop: damping, acceptance, status.
+
+    GTSAM's default LM: ``lambda`` divided by ``lambdaFactor`` after an accepted step
+    (not below ``lambdaLowerBound``) and multiplied after a rejected one or an
+    indeterminate system. Converged when an accepted step decreased the cost by at
+    most ``max(absoluteErrorTol, relativeErrorTol * cost)``
+    (:func:`decrease_converged`) or the cost fell below ``errorTol``; stalled when no
+    step lowered the cost before ``lambda`` passed ``lambdaUpperBound``. The backend
+    holds the state and does the linear algebra: :func:`levenberg_marquardt` on one
+    graph, :func:`~gtsam_sphere.estimation.partitioned.refine_partitioned` on submaps.
+
+    Parameters
+    ----------
+    backend : LMBackend
+        Its current state is the start; at the end, the last accepted state.
+    params : gtsam.LevenbergMarquardtParams
+        ``maxIterations``, ``relativeErrorTol``, ``absoluteErrorTol``, ``errorTol``,
+        ``lambdaInitial``, ``lambdaFactor``, ``lambdaLowerBound``,
+        ``lambdaUpperBound`` are used.
+    error : float
+        Cost of the backend's current state.
+    lam : float or None
+        Damping to start from (a resumed run's); None: ``lambdaInitial``.
+    iteration : int
+        Iterations already done (a resumed run's); the run stops at ``maxIterations``.
+    gtsam_steps : bool
+        Take and refuse steps as ``gtsam.LevenbergMarquardtOptimizer`` does (see
+        :func:`levenberg_marquardt`). Default: a step is accepted when it lowers the
+        cost and its predicted decrease is positive.
+    on_iteration : callable(LMIteration) or None
+        Called after each accepted step and, with ``gtsam_steps``, after the last
+        iteration when it took no step.
+
+    Returns
+    -------
+    dict
+        ``iterations`` (int, ``iteration`` included), ``error``, ``status``
+        (:class:`~gtsam_sphere.core.least_squares.LMStatus`), ``converged`` (bool),
+        ``lambda``, ``iteration_s`` (wall-clock seconds of each iteration of this run).
+    """
+    p = params
+    lam = p.getlambdaInitial() if lam is None else lam
+    iteration_s: list[float] = []
+    status = LMStatus.MAX_ITERATIONS
+    while iteration < p.getMaxIterations():
+        t0 = time.perf_counter()
+        backend.linearize()
+        accepted = negligible = False
+        while gtsam_steps or lam <= p.getlambdaUpperBound():
+            predicted = backend.solve(lam)
+            if predicted is None:  # as GTSAM's LM: an indeterminate system is a failed step
+                lam *= p.getlambdaFactor()
+                if gtsam_steps and lam >= p.getlambdaUpperBound():
+                    break
+                continue
+            if gtsam_steps:
+                # GTSAM's tryLambda: a valid step (predicted >= 0) is accepted when the
+                # model's fidelity exceeds its floor; a negligible cost change ends the
+                # search for a damping without a step
+                success = False
+                model = backend.model_cost
+                if predicted < 0 and -predicted <= _ROUNDING * model:
+                    # no decrease beyond rounding at any damping (perfect data at the
+                    # noise floor): converged, where GTSAM would raise lambda to its bound
+                    # and stall
+                    negligible = True
+                    break
+                if predicted >= 0:
+                    trial_error = backend.evaluate()
+                    change = error - trial_error
+                    if predicted > _EPS * model:
+                        success = change / predicted > GTSAM_MIN_MODEL_FIDELITY
+                    negligible = abs(change) < p.getRelativeErrorTol() * error
+            else:
+                trial_error = backend.evaluate()
+                success = trial_error < error and predicted > 0
+            if success:
+                lam = max(lam / p.getlambdaFactor(), p.getlambdaLowerBound())
+                accepted = True
+                break
+            if negligible:
+                break
+            lam *= p.getlambdaFactor()
+            if gtsam_steps and lam >= p.getlambdaUpperBound():
+                break
+        iteration_s.append(time.perf_counter() - t0)
+        iteration += 1
+        if not accepted:
+            if gtsam_steps and on_iteration is not None:  # an iteration without a step
+                on_iteration(LMIteration(iteration, error, lam, iteration_s[-1], negligible))
+            # negligible: GTSAM's own convergence test then sees no decrease (converged);
+            # otherwise the damping reached its upper bound (stalled), as optimize() says
+            status = LMStatus.CONVERGED if negligible else LMStatus.STALLED
+            break
+        previous = error
+        backend.accept()
+        error = trial_error
+        done = (
+            decrease_converged(previous, error, p.getAbsoluteErrorTol(), p.getRelativeErrorTol())
+            or error < p.getErrorTol()
+        )
+        if on_iteration is not None:
+            on_iteration(LMIteration(iteration, error, lam, iteration_s[-1], done))
+        if done:
+            status = LMStatus.CONVERGED
+            break
+    return {
+        "iterations": iteration,
+        "error": error,
+        "status": status,
+        "converged": status is LMStatus.CONVERGED,
+        "lambda": lam,
+        "iteration_s": iteration_s,
+    }
+
+
+class GraphBackend:
+    """:class:`LMBackend` of a ``gtsam.NonlinearFactorGraph`` in this process.
+
+    Linearises and evaluates on Python-owned ``Values`` through the factor engine's
+    passes (see :func:`levenberg_marquardt`); damping, elimination and retraction
+    are GTSAM's C++.
+
+    Parameters
+    ----------
+    graph : gtsam.NonlinearFactorGraph
+    initial : gtsam.Values
+        Not modified.
+    ordering : gtsam.Ordering or None
+        Elimination ordering; None: COLAMD of the first linearisation.
+
+    Attributes
+    ----------
+    values : gtsam.Values
+        The current state (not to be modified).
+    error : float
+        Its cost (GTSAM's error: half the weighted sum of squares).
+    """
+
+    def __init__(
+        self,
+        graph: gtsam.NonlinearFactorGraph,
+        initial: gtsam.Values,
+        ordering: gtsam.Ordering | None = None,
+    ):
+        self.graph = graph
+        self.ordering = ordering
+        self.values = gtsam.Values(initial)
+        # the passes at one Values share a TrustedPass (no Values is modified here), and the
+        # evaluation of a point LM may step to next computes its Jacobians on the way
+        self.passes = TrustedPass(self.values, jacobians=True)
+        with self.passes:
+            self.error = graph.error(self.values)
+        self.zero = self.values.zeroVectors()
+        self.damping = LambdaDamping((k, len(self.zero.at(k))) for k in self.values.keys())
+        self.lin = self.delta = self._trial = None
+        self.model_cost = math.nan
+        self._first_trial = True
+
+    def linearize(self) -> None:
+        """Linearise at the current state (the Jacobians its evaluation computed)."""
+        with self.passes:
+            self.lin = self.graph.linearize(self.values)
+        if self.ordering is None:
+            self.ordering = gtsam.Ordering.Colamd(gtsam.VariableIndex(self.lin))
+        self.model_cost = self.lin.error(self.zero)
+        # after a rejected step, evaluate the next trials' cost only
+        self._first_trial = True
+
+    def solve(self, lam: float) -> float | None:
+        """Multifrontal elimination of the damped system (Cholesky preferred)."""
+        try:
+            self.delta = self.damping.damped(self.lin, lam).optimize(self.ordering)
+        except RuntimeError as exc:
+            if "ndeterminate" not in str(exc):
+                raise
+            return None
+        return self.model_cost - self.lin.error(self.delta)
+
+    def evaluate(self) -> float:
+        """Retract and evaluate; the first trial of an iteration also computes Jacobians."""
+        trial = self.values.retract(self.delta)
+        passes = TrustedPass(trial, jacobians=self._first_trial)
+        self._first_trial = False
+        with passes:
+            trial_error = self.graph.error(trial)
+        self._trial = (trial, passes, trial_error)
+        return trial_error
+
+    def accept(self) -> None:
+        """The trial becomes the current state."""
+        self.values, self.passes, self.error = self._trial
+
+
 def levenberg_marquardt(
     graph: gtsam.NonlinearFactorGraph,
     initial: gtsam.Values,
@@ -260,7 +563,7 @@ def levenberg_marquardt(
 ) -> tuple[gtsam.Values, dict]:
     """Levenberg-Marquardt driven from Python, for graphs holding many ``CustomFactor`` s.
 
-    The package's one Python-driven LM (:func:`optimize` runs GTSAM's own
+    :func:`lm_driver` on a :class:`GraphBackend` (:func:`optimize` runs GTSAM's own
     optimisers). Why: GTSAM's C++ optimisers hand their internal ``gtsam.Values``
     to every ``CustomFactor`` callback, and the Python wrapper (pybind11) copies a
     ``Values`` that Python does not own before each call. Inside
@@ -274,15 +577,10 @@ def levenberg_marquardt(
     variable for as long as the ``ISAM2`` lives: the callbacks then receive that
     registered object instead of a copy.
 
-    The algorithm is GTSAM's default LM: damping ``lambda * I`` on every variable,
-    ``lambda`` divided by ``lambdaFactor`` after an accepted step and multiplied
-    after a rejected one, COLAMD ordering computed once, multifrontal elimination
+    The algorithm is GTSAM's default LM (:func:`lm_driver`): damping ``lambda * I``
+    on every variable, COLAMD ordering computed once, multifrontal elimination
     (Cholesky preferred); an indeterminate linear system counts as a rejected step
-    (``lambda`` grows), as in GTSAM. The status has the meaning of :func:`optimize`'s:
-    converged when an accepted step decreased the cost by at most
-    ``max(absoluteErrorTol, relativeErrorTol * cost)`` (:func:`decrease_converged`)
-    or the cost fell below ``errorTol``; stalled when no step lowered the cost before
-    ``lambda`` passed ``lambdaUpperBound``.
+    (``lambda`` grows), as in GTSAM. The status has the meaning of :func:`optimize`'s.
 
     The factor engine's blocks (:mod:`~gtsam_sphere.estimation.engine`) are
     evaluated once per pass (:class:`~gtsam_sphere.estimation.engine.TrustedPass`),
@@ -297,9 +595,7 @@ def levenberg_marquardt(
     initial : gtsam.Values
         Not modified.
     params : gtsam.LevenbergMarquardtParams or None
-        ``maxIterations``, ``relativeErrorTol``, ``absoluteErrorTol``,
-        ``errorTol``, ``lambdaInitial``, ``lambdaFactor``,
-        ``lambdaLowerBound``, ``lambdaUpperBound`` are used; GTSAM's defaults if None.
+        As :func:`lm_driver`; GTSAM's defaults if None.
     ordering : gtsam.Ordering or None
         Elimination ordering; None: COLAMD of the first linearisation.
     on_iteration : callable(int, float, gtsam.Values) or None
@@ -325,134 +621,23 @@ def levenberg_marquardt(
     values : gtsam.Values
         The last accepted state.
     info : dict
-        ``iterations``, ``initial_error``, ``error``, ``lambda``,
-        ``iteration_s`` (list of wall-clock seconds per iteration, float),
+        ``initial_error`` and :func:`lm_driver`'s ``iterations``, ``error``,
+        ``lambda``, ``iteration_s`` (list of wall-clock seconds per iteration, float),
         ``status`` (:class:`~gtsam_sphere.core.least_squares.LMStatus`),
         ``converged`` (bool: ``status is LMStatus.CONVERGED``).
     """
     p = params or gtsam.LevenbergMarquardtParams()
-    values = gtsam.Values(initial)
-    # the passes at one Values share a TrustedPass (no Values is modified here), and the
-    # evaluation of a point LM may step to next computes its Jacobians on the way
-    passes = TrustedPass(values, jacobians=True)
-    with passes:
-        error = graph.error(values)
-    info = {"initial_error": error, "iteration_s": []}
+    backend = GraphBackend(graph, initial, ordering)
+    initial_error = backend.error
+    report = None
     if on_iteration is not None:
-        on_iteration(0, error, values)
-    status = LMStatus.MAX_ITERATIONS
-    lam = p.getlambdaInitial()
-    zero = values.zeroVectors()
-    # lambda * I on every variable: one factor per variable, built once; each trial only
-    # sets its sigma 1 / sqrt(lambda) (setModel gives the Isotropic model of equal sigmas)
-    damping = gtsam.GaussianFactorGraph()
-    dims = []
-    for k in values.keys():
-        d = len(zero.at(k))
-        damping.add(
-            gtsam.JacobianFactor(k, np.eye(d), np.zeros(d), gtsam.noiseModel.Unit.Create(d))
-        )
-        dims.append(d)
-    # the graph's own factors (add() stores a copy): setModel acts on what the solver sees
-    damping_dims = [(damping.at(q), d) for q, d in enumerate(dims)]
-    for _ in range(p.getMaxIterations()):
-        t0 = time.perf_counter()
-        with passes:
-            lin = graph.linearize(values)
-        if ordering is None:
-            ordering = gtsam.Ordering.Colamd(gtsam.VariableIndex(lin))
-        lin_zero_error = lin.error(zero)
-        accepted = negligible = False
-        first_trial = True  # after a rejected step, evaluate the next trials' cost only
-        while gtsam_steps or lam <= p.getlambdaUpperBound():
-            sigma = 1.0 / math.sqrt(lam)
-            sigmas: dict[int, np.ndarray] = {}
-            for factor, d in damping_dims:
-                sig = sigmas.get(d)
-                if sig is None:
-                    sig = sigmas[d] = np.full(d, sigma)
-                factor.setModel(False, sig)
-            damped = gtsam.GaussianFactorGraph()
-            damped.push_back(lin)
-            damped.push_back(damping)
-            try:
-                delta = damped.optimize(ordering)
-            except RuntimeError as exc:  # as GTSAM's LM: an indeterminate system is a failed step
-                if "ndeterminate" not in str(exc):
-                    raise
-                lam *= p.getlambdaFactor()
-                if gtsam_steps and lam >= p.getlambdaUpperBound():
-                    break
-                continue
-            predicted = lin_zero_error - lin.error(delta)
-            if gtsam_steps:
-                # GTSAM's tryLambda: a valid step (predicted >= 0) is accepted when the
-                # model's fidelity exceeds its floor; a negligible cost change ends the
-                # search for a damping without a step
-                success = False
-                if predicted < 0 and -predicted <= _ROUNDING * lin_zero_error:
-                    # no decrease beyond rounding at any damping (perfect data at the
-                    # noise floor): converged, where GTSAM would raise lambda to its bound
-                    # and stall
-                    negligible = True
-                    break
-                if predicted >= 0:
-                    trial = values.retract(delta)
-                    trial_passes = TrustedPass(trial, jacobians=first_trial)
-                    first_trial = False
-                    with trial_passes:
-                        trial_error = graph.error(trial)
-                    change = error - trial_error
-                    if predicted > _EPS * lin_zero_error:
-                        success = change / predicted > GTSAM_MIN_MODEL_FIDELITY
-                    negligible = abs(change) < p.getRelativeErrorTol() * error
-                if success:
-                    lam = max(lam / p.getlambdaFactor(), p.getlambdaLowerBound())
-                    accepted = True
-                    break
-                if negligible:
-                    break
-                lam *= p.getlambdaFactor()
-                if lam >= p.getlambdaUpperBound():
-                    break
-                continue
-            trial = values.retract(delta)
-            trial_passes = TrustedPass(trial, jacobians=first_trial)
-            first_trial = False
-            with trial_passes:
-                trial_error = graph.error(trial)
-            if trial_error < error and predicted > 0:
-                lam = max(lam / p.getlambdaFactor(), p.getlambdaLowerBound())
-                accepted = True
-                break
-            lam *= p.getlambdaFactor()
-        info["iteration_s"].append(time.perf_counter() - t0)
-        if not accepted:
-            if gtsam_steps and on_iteration is not None:
-                # an iteration without a step
-                on_iteration(len(info["iteration_s"]), error, values)
-            # negligible: GTSAM's own convergence test then sees no decrease (converged);
-            # otherwise the damping reached its upper bound (stalled), as optimize() says
-            status = LMStatus.CONVERGED if negligible else LMStatus.STALLED
-            break
-        previous = error
-        values, error, passes = trial, trial_error, trial_passes
-        if on_iteration is not None:
-            on_iteration(len(info["iteration_s"]), error, values)
-        if (
-            decrease_converged(previous, error, p.getAbsoluteErrorTol(), p.getRelativeErrorTol())
-            or error < p.getErrorTol()
-        ):
-            status = LMStatus.CONVERGED
-            break
-    info.update(
-        iterations=len(info["iteration_s"]),
-        error=error,
-        status=status,
-        converged=status is LMStatus.CONVERGED,
-        **{"lambda": lam},
-    )
-    return values, info
+        on_iteration(0, initial_error, backend.values)
+
+        def report(it: LMIteration) -> None:
+            on_iteration(it.iteration, it.error, backend.values)
+
+    info = lm_driver(backend, p, initial_error, gtsam_steps=gtsam_steps, on_iteration=report)
+    return backend.values, {"initial_error": initial_error, **info}
 
 
 def marginal_covariances(

@@ -18,24 +18,28 @@ F. Dellaert, "Multi-Level Submap Based SLAM Using Nested Dissection" (IROS
    ``lambda * I`` there and solves the reduced system (SciPy sparse LU);
 3. every worker back-substitutes its interior given the separator's step,
    retracts, and returns its cost at the trial point and its predicted decrease;
-4. the driver accepts the step when the summed cost went down (``lambda``
-   divided by ``lambdaFactor``), or rejects it (``lambda`` multiplied, the
-   workers re-eliminate at the same linearisation point).
+4. the step is accepted when the summed cost went down (``lambda`` divided by
+   ``lambdaFactor``), or rejected (``lambda`` multiplied, the workers
+   re-eliminate at the same linearisation point).
 
+The loop itself (damping, acceptance, convergence, status) is the package's one
+graph LM, :func:`~gtsam_sphere.estimation.optimize.lm_driver`, which the global
+:func:`~gtsam_sphere.estimation.optimize.levenberg_marquardt` runs on one graph;
+:class:`PartitionedBackend` is its linear algebra over the submaps (steps 1-3).
 Every factor lives in exactly one submap (:mod:`.partition`), so the summed
 costs and reduced systems are those of the whole graph: each step is the step
-of the global :func:`~gtsam_sphere.estimation.optimize.levenberg_marquardt`
-(GTSAM's default LM, ``lambda * I`` on every variable) up to rounding, the same
-acceptance, the same convergence test (:func:`decrease_converged`), hence the
-same answer as the global solve. Unlike a consensus scheme (ADMM) nothing is
-approximate and no extra iterations are needed; the price is the separator
-system on the driver (its size is the cut of the covisibility graph, small for
+of the global LM (GTSAM's default LM, ``lambda * I`` on every variable) up to
+rounding, hence the same answer as the global solve. Unlike a consensus scheme
+(ADMM) nothing is approximate and no extra iterations are needed; the price is
+the separator system on the driver (its size is the cut of the covisibility graph, small for
 maps that follow a trajectory).
 
 Where the work runs is an *executor* (:class:`LocalExecutor` here, in process;
 :class:`~gtsam_sphere.estimation.ray_executor.RayExecutor` on a Ray cluster):
-workers each hold some submaps, built once from their data; per iteration only
-the separator step (driver -> worker), the reduced systems and two numbers per
+workers each hold some submaps, built once from their data (or, for less memory,
+only ``resident`` of them alive and the others made again from their data when
+called: :class:`SubmapHost`); per iteration only
+the separator step (driver -> worker), the reduced systems and three numbers per
 submap (worker -> driver) travel. A worker's current values are returned as
 opaque states (with Ray: object references that stay in the object store), so a
 worker that dies is recreated from its data and its last state and the call is
@@ -46,6 +50,8 @@ a run started again with the same checkpoint path resumes from it.
 
 from __future__ import annotations
 
+import ctypes
+import gc
 import hashlib
 import io
 import logging
@@ -62,11 +68,10 @@ import numpy as np
 
 from ..core._compat import StrEnum
 from ..core.errors import InputError
-from ..core.least_squares import LMStatus
 from ..io.dataset import write_bytes_atomic
 from .engine import TrustedPass
 from .map_problem import MapProblem, RefineResult, lm_params
-from .optimize import decrease_converged
+from .optimize import LambdaDamping, LMIteration, lm_driver
 from .partition import covisibility_partition, separator_keys
 
 logger = logging.getLogger(__name__)
@@ -74,6 +79,7 @@ logger = logging.getLogger(__name__)
 __all__ = [
     "Engine",
     "LocalExecutor",
+    "PartitionedBackend",
     "PartitionedOptions",
     "SubmapHost",
     "SubmapWorker",
@@ -182,17 +188,10 @@ class SubmapWorker:
         self.dims.update({int(k): 3 for k in self.point_keys})
         self._counter = 0
         self._values: dict[str, tuple[gtsam.Values, TrustedPass]] = {}
-        self._linear: tuple | None = None  # (token, lam, lin, bayes net)
-        # lambda * I on the interior variables: one factor each, sigma set per trial
-        self._damping = gtsam.GaussianFactorGraph()
-        for k in self.interior:
-            d = self.dims[k]
-            self._damping.add(
-                gtsam.JacobianFactor(k, np.eye(d), np.zeros(d), gtsam.noiseModel.Unit.Create(d))
-            )
-        self._damping_factors = [
-            (self._damping.at(q), self.dims[k]) for q, k in enumerate(self.interior)
-        ]
+        self._linear: tuple | None = None  # (token, linearisation, its cost at zero)
+        self._elimination: tuple | None = None  # (token, lam, Bayes net of the interior)
+        # lambda * I on the interior variables (the driver damps the separator)
+        self._damping = LambdaDamping((k, self.dims[k]) for k in self.interior)
 
     # ------------------------------------------------------------------ states
 
@@ -238,27 +237,27 @@ class SubmapWorker:
         with passes:
             return float(self.built.graph.error(values))
 
-    def _eliminate(self, state: dict, lam: float):
-        if self._linear is not None and self._linear[:2] == (state["token"], lam):
-            return self._linear
-        values, passes = self._at(state)
+    def _linearization(self, state: dict) -> tuple[gtsam.GaussianFactorGraph, float]:
+        """The linearisation at ``state`` and its cost at the zero step (made once a state)."""
         if self._linear is not None and self._linear[0] == state["token"]:
-            lin = self._linear[2]
-        else:
-            with passes:
-                lin = self.built.graph.linearize(values)
-        sigma = 1.0 / math.sqrt(lam)
-        for factor, d in self._damping_factors:
-            factor.setModel(False, np.full(d, sigma))
-        damped = gtsam.GaussianFactorGraph()
-        damped.push_back(lin)
-        damped.push_back(self._damping)
+            return self._linear[1:]
+        self._linear = self._elimination = None  # one linearisation alive at a time
+        values, passes = self._at(state)
+        with passes:
+            lin = self.built.graph.linearize(values)
+        self._linear = (state["token"], lin, float(lin.error(values.zeroVectors())))
+        return self._linear[1:]
+
+    def _eliminate(self, state: dict, lam: float):
+        """``(bayes net, separator factors)`` of the interior's elimination, damped by ``lam``."""
+        lin, _ = self._linearization(state)
+        damped = self._damping.damped(lin, lam)
         if self.separator:
             bayes, rest = damped.eliminatePartialSequential(self.interior)
         else:
             bayes, rest = damped.eliminateSequential(), None
-        self._linear = (state["token"], lam, lin, bayes, rest)
-        return self._linear
+        self._elimination = (state["token"], lam, bayes)
+        return bayes, rest
 
     def reduce(self, state: dict, lam: float) -> dict:
         """Eliminate the interior (damped by ``lam``): the Schur complement on the separator.
@@ -275,11 +274,19 @@ class SubmapWorker:
             ``keys`` (list of int, separator keys of this submap, the Hessian's
             order), ``dims`` (list of int), ``information`` (n, n) and ``linear``
             (n,): the reduced cost ``0.5 (c - 2 x^T linear + x^T information x)``
-            of a separator step ``x``.
+            of a separator step ``x``; ``model`` (float): the undamped linearised
+            cost at the zero step.
         """
-        *_, rest = self._eliminate(state, lam)
+        _, rest = self._eliminate(state, lam)
+        _, model = self._linearization(state)
         if rest is None or rest.size() == 0:
-            return {"keys": [], "dims": [], "information": np.zeros((0, 0)), "linear": np.zeros(0)}
+            return {
+                "keys": [],
+                "dims": [],
+                "information": np.zeros((0, 0)),
+                "linear": np.zeros(0),
+                "model": model,
+            }
         hessian = gtsam.HessianFactor(rest)
         keys = [int(k) for k in hessian.keys()]
         return {
@@ -287,10 +294,17 @@ class SubmapWorker:
             "dims": [self.dims[k] for k in keys],
             "information": np.array(hessian.information(), dtype=float, copy=True),
             "linear": np.array(hessian.linearTerm(), dtype=float, copy=True).reshape(-1),
+            "model": model,
         }
 
     def step(self, state: dict, lam: float, keys: list, delta: np.ndarray):
         """Back-substitute the interior given the separator step, retract, evaluate.
+
+        The linearisation and the elimination :meth:`reduce` made are used here
+        (made again if this worker has not kept them: after a restart, or when its
+        host holds more submaps than it keeps resident) and then dropped: they
+        would serve only a rejected step's next :meth:`reduce`, which linearises
+        again, and are not held through the trial's evaluation (the peak memory).
 
         Parameters
         ----------
@@ -309,7 +323,11 @@ class SubmapWorker:
         trial : dict
             The trial state.
         """
-        _, _, lin, bayes, _ = self._eliminate(state, lam)
+        if self._elimination is not None and self._elimination[:2] == (state["token"], lam):
+            bayes = self._elimination[2]
+        else:
+            bayes, _ = self._eliminate(state, lam)
+        lin, model = self._linearization(state)
         given = gtsam.VectorValues()
         at = 0
         for k in keys:
@@ -317,9 +335,11 @@ class SubmapWorker:
             given.insert(int(k), np.asarray(delta[at : at + d], float))
             at += d
         step = bayes.optimize(given) if self.separator else bayes.optimize()
+        predicted = model - lin.error(step)
+        del lin, bayes
+        self._linear = self._elimination = None
+        release_freed_memory()
         values, _ = self._at(state)
-        zero = values.zeroVectors()
-        predicted = lin.error(zero) - lin.error(step)
         trial = values.retract(step)
         passes = TrustedPass(trial, jacobians=True)
         with passes:
@@ -327,6 +347,27 @@ class SubmapWorker:
         new_state = self._state_of(trial)
         self._remember(new_state["token"], trial, passes)
         return {"error": error, "predicted": float(predicted)}, new_state
+
+
+def release_freed_memory() -> None:
+    """Hand the C heap's free pages back to the system (glibc's ``malloc_trim``).
+
+    A linearisation is many small C++ allocations; freed, glibc keeps their pages
+    (the process's resident size does not fall) while the next evaluation's numpy
+    temporaries are mapped afresh, so both count in the peak. Elsewhere than
+    glibc: nothing.
+    """
+    global _MALLOC_TRIM
+    if _MALLOC_TRIM is None:
+        try:
+            _MALLOC_TRIM = ctypes.CDLL("libc.so.6").malloc_trim
+        except (OSError, AttributeError):
+            _MALLOC_TRIM = False
+    if _MALLOC_TRIM:
+        _MALLOC_TRIM(0)
+
+
+_MALLOC_TRIM = None
 
 
 class SubmapHost:
@@ -341,29 +382,69 @@ class SubmapHost:
         :class:`~gtsam_sphere.simulate.building.BuildingPart`) is built here, in
         the worker, so the whole map never exists in one process.
     separator : ndarray of uint64
+    resident : int or None
+        Submaps whose :class:`SubmapWorker` (graph, factor engine, values) stays
+        alive between calls; the others keep only their data (a
+        :class:`MapProblem`: tens of bytes per observation, against kilobytes for a
+        worker) and their worker is made again when called, in the place of the
+        worker made last (the same results; the graph's construction, a
+        linearisation and an elimination more per call). None: all (no submap is
+        made twice).
     """
 
-    def __init__(self, parts: list[int], submaps: list, separator: np.ndarray):
+    def __init__(
+        self,
+        parts: list[int],
+        submaps: list,
+        separator: np.ndarray,
+        resident: int | None = None,
+    ):
         t0 = time.process_time()
         submaps = [s if isinstance(s, MapProblem) else s.build() for s in submaps]
-        self.workers = {int(k): SubmapWorker(int(k), s, separator) for k, s in zip(parts, submaps)}
+        self.separator = np.asarray(separator, np.uint64)
+        self.problems = {int(k): s for k, s in zip(parts, submaps)}
+        self.resident = None if resident is None else max(1, int(resident))
+        self.workers: dict[int, SubmapWorker] = {}  # alive, in the order they were made
+        self.workers_made = 0
+        if self.resident is None:
+            for k in self.problems:
+                self._worker(k)
         self.fingerprints = {int(k): _fingerprint(s) for k, s in zip(parts, submaps)}
         self.nbytes = {int(k): s.nbytes() for k, s in zip(parts, submaps)}
         self.n_observations = {int(k): s.n_observations for k, s in zip(parts, submaps)}
         self.build_cpu_s = time.process_time() - t0
         self.solve_cpu_s = 0.0
 
+    def _worker(self, part: int) -> SubmapWorker:
+        worker = self.workers.get(part)
+        if worker is None:
+            if self.resident is not None and len(self.workers) >= self.resident:
+                # the submaps are called in turn, each once per round: the most recently
+                # made goes (least recently used would make every one again each round),
+                # and out before the new one is made (one at a time in memory)
+                self.workers.popitem()
+                release_freed_memory()
+            gc.disable()  # tens of thousands of objects: the collector would scan them often
+            try:
+                worker = SubmapWorker(part, self.problems[part], self.separator)
+            finally:
+                gc.enable()
+            self.workers[part] = worker
+            self.workers_made += 1
+        return worker
+
     def call(self, part: int, method: str, *args):
         """Run ``SubmapWorker.method(*args)`` of submap ``part`` (its CPU time is counted)."""
         t0 = time.process_time()
         try:
-            return getattr(self.workers[int(part)], method)(*args)
+            return getattr(self._worker(int(part)), method)(*args)
         finally:
             self.solve_cpu_s += time.process_time() - t0
 
     def info(self) -> dict:
         """Process id, peak resident memory (MB), CPU seconds (all, building the
-        submaps, in the solver's calls), data bytes, observations and fingerprints."""
+        submaps, in the solver's calls), data bytes, observations, fingerprints and
+        the number of :class:`SubmapWorker` s made (``workers_made``)."""
         return {
             "pid": os.getpid(),
             "peak_rss_mb": peak_rss_mb(),
@@ -373,6 +454,7 @@ class SubmapHost:
             "nbytes": dict(self.nbytes),
             "n_observations": dict(self.n_observations),
             "fingerprints": dict(self.fingerprints),
+            "workers_made": self.workers_made,
         }
 
 
@@ -403,11 +485,15 @@ class LocalExecutor:
     ----------
     submaps : list of MapProblem
     separator : ndarray of uint64
+    resident : int or None
+        As :class:`SubmapHost` (None: every submap's worker alive throughout).
     """
 
-    def __init__(self, submaps: list[MapProblem], separator: np.ndarray):
+    def __init__(
+        self, submaps: list[MapProblem], separator: np.ndarray, resident: int | None = None
+    ):
         self.n_parts = len(submaps)
-        self.host = SubmapHost(list(range(len(submaps))), submaps, separator)
+        self.host = SubmapHost(list(range(len(submaps))), submaps, separator, resident)
 
     def call(self, part: int, method: str, *args, num_returns: int = 1):
         """Run the method now; returns its result (a tuple for two returns)."""
@@ -513,6 +599,81 @@ def _solve_separator(reduced: list[dict], lam: float):
     return offset, x
 
 
+class PartitionedBackend:
+    """:class:`~gtsam_sphere.estimation.optimize.LMBackend` of submaps on an executor.
+
+    The state is one opaque state per submap (with Ray: object references). Per
+    :meth:`solve`, every worker eliminates its interior (``reduce``), the driver
+    solves the damped separator system (:func:`_solve_separator`) and every
+    worker back-substitutes, retracts and evaluates its trial (``step``): the
+    trial's cost comes back with the predicted decrease, in one round trip.
+
+    Parameters
+    ----------
+    executor : LocalExecutor or RayExecutor
+    n_parts : int
+    states : list
+        The submaps' current states.
+
+    Attributes
+    ----------
+    states : list
+        The current states.
+    separator_dim : int
+        Dimension of the last separator system solved.
+    model_cost : float
+        The summed linearised cost at the zero step (the workers' ``reduce``).
+    """
+
+    def __init__(self, executor, n_parts: int, states: list):
+        self.executor = executor
+        self.n_parts = n_parts
+        self.states = states
+        self.separator_dim = 0
+        self.model_cost = math.nan
+        self._trial: tuple[float, list] | None = None
+
+    def _each(self, method: str, *args) -> list:
+        ex = self.executor
+        return ex.get([ex.call(k, method, self.states[k], *args) for k in range(self.n_parts)])
+
+    def error(self) -> float:
+        """The summed cost of the current states."""
+        return float(sum(self._each("error")))
+
+    def linearize(self) -> None:
+        """Nothing here: each worker linearises in its first ``reduce`` at a new state."""
+        self.model_cost = math.nan
+
+    def solve(self, lam: float) -> float | None:
+        """Reduce, solve the separator, step every submap (the trial's cost kept)."""
+        ex = self.executor
+        reduced = self._each("reduce", lam)
+        self.model_cost = float(sum(r["model"] for r in reduced))
+        solved = _solve_separator(reduced, lam)
+        if solved is None:
+            return None
+        offset, x = solved
+        self.separator_dim = len(x)
+        calls = []
+        for k in range(self.n_parts):
+            keys = reduced[k]["keys"]
+            idx = [np.arange(offset[q], offset[q] + d) for q, d in zip(keys, reduced[k]["dims"])]
+            delta = x[np.concatenate(idx)] if idx else np.zeros(0)
+            calls.append(ex.call(k, "step", self.states[k], lam, keys, delta, num_returns=2))
+        summaries = ex.get([c[0] for c in calls])
+        self._trial = (float(sum(s["error"] for s in summaries)), [c[1] for c in calls])
+        return float(sum(s["predicted"] for s in summaries))
+
+    def evaluate(self) -> float:
+        """The summed cost of the trial (evaluated by the workers' ``step``)."""
+        return self._trial[0]
+
+    def accept(self) -> None:
+        """The trial states become the current ones."""
+        self.states = self._trial[1]
+
+
 def refine_partitioned(
     executor,
     n_parts: int,
@@ -521,6 +682,9 @@ def refine_partitioned(
     on_iteration: Callable[[int, dict], None] | None = None,
 ) -> tuple[list[dict], dict]:
     """Levenberg-Marquardt over submaps with the separator solved centrally (see the module).
+
+    :func:`~gtsam_sphere.estimation.optimize.lm_driver` on a
+    :class:`PartitionedBackend`, with a checkpoint after each accepted iteration.
 
     Parameters
     ----------
@@ -556,8 +720,7 @@ def refine_partitioned(
     resumed = _load_checkpoint(opts.checkpoint, fingerprint)
     if resumed is not None:
         first_iteration, lam, error, loaded = resumed
-        states = [executor.put(s) for s in loaded]
-        initial_error = error
+        backend = PartitionedBackend(executor, n_parts, [executor.put(s) for s in loaded])
         if progress:
             progress(
                 f"resumed from {opts.checkpoint}: iteration {first_iteration}, cost {error:.6e}"
@@ -565,85 +728,39 @@ def refine_partitioned(
     else:
         first_iteration, lam = 0, p.getlambdaInitial()
         states = [executor.call(k, "initial_state") for k in range(n_parts)]
-        error = float(
-            sum(executor.get([executor.call(k, "error", states[k]) for k in range(n_parts)]))
-        )
-        initial_error = error
+        backend = PartitionedBackend(executor, n_parts, states)
+        error = backend.error()
     if progress:
         progress(f"iteration {first_iteration:3d}  cost {error:.6e}  ({n_parts} submaps)")
-    info = {
-        "initial_error": initial_error,
-        "iteration_s": [],
-        "resumed_from": resumed and resumed[0],
-    }
-    status = LMStatus.MAX_ITERATIONS
-    sep_dim = 0
-    iteration = first_iteration
-    while iteration < p.getMaxIterations():
-        t0 = time.perf_counter()
-        accepted = False
-        while lam <= p.getlambdaUpperBound():
-            reduced = executor.get(
-                [executor.call(k, "reduce", states[k], lam) for k in range(n_parts)]
-            )
-            solved = _solve_separator(reduced, lam)
-            if solved is None:  # as GTSAM's LM: an indeterminate system is a failed step
-                lam *= p.getlambdaFactor()
-                continue
-            offset, x = solved
-            sep_dim = len(x)
-            calls = []
-            for k in range(n_parts):
-                keys = reduced[k]["keys"]
-                idx = [
-                    np.arange(offset[q], offset[q] + d) for q, d in zip(keys, reduced[k]["dims"])
-                ]
-                delta = x[np.concatenate(idx)] if idx else np.zeros(0)
-                calls.append(executor.call(k, "step", states[k], lam, keys, delta, num_returns=2))
-            summaries = executor.get([c[0] for c in calls])
-            trial_error = float(sum(s["error"] for s in summaries))
-            predicted = float(sum(s["predicted"] for s in summaries))
-            if trial_error < error and predicted > 0:
-                lam = max(lam / p.getlambdaFactor(), p.getlambdaLowerBound())
-                accepted = True
-                break
-            lam *= p.getlambdaFactor()
-        info["iteration_s"].append(time.perf_counter() - t0)
-        iteration += 1
-        if not accepted:
-            status = LMStatus.STALLED
-            break
-        previous = error
-        states, error = [c[1] for c in calls], trial_error
+
+    def report(it: LMIteration) -> None:
         if progress:
             progress(
-                f"iteration {iteration:3d}  cost {error:.6e}  lambda {lam:.1e}  "
-                f"separator {sep_dim}  {info['iteration_s'][-1]:.2f} s"
+                f"iteration {it.iteration:3d}  cost {it.error:.6e}  lambda {it.lam:.1e}  "
+                f"separator {backend.separator_dim}  {it.seconds:.2f} s"
             )
-        done = (
-            decrease_converged(previous, error, p.getAbsoluteErrorTol(), p.getRelativeErrorTol())
-            or error < p.getErrorTol()
-        )
-        if opts.checkpoint is not None and not done:
+        if opts.checkpoint is not None and not it.converged:
             _save_checkpoint(
-                opts.checkpoint, fingerprint, iteration, lam, error, executor.get(states)
+                opts.checkpoint,
+                fingerprint,
+                it.iteration,
+                it.lam,
+                it.error,
+                executor.get(backend.states),
             )
         if on_iteration is not None:
-            on_iteration(iteration, {"error": error, "lambda": lam})
-        if done:
-            status = LMStatus.CONVERGED
-            break
-    final = executor.get(states)
+            on_iteration(it.iteration, {"error": it.error, "lambda": it.lam})
+
+    run = lm_driver(backend, p, error, lam=lam, iteration=first_iteration, on_iteration=report)
+    final = executor.get(backend.states)
     if opts.checkpoint is not None and not opts.keep_checkpoint:
         Path(opts.checkpoint).unlink(missing_ok=True)
-    info.update(
-        iterations=iteration,
-        error=error,
-        status=status,
-        separator_dim=sep_dim,
-        converged=status is LMStatus.CONVERGED,
-        **{"lambda": lam},
-    )
+    info = {
+        "initial_error": error,
+        "resumed_from": resumed and resumed[0],
+        **run,
+        "separator_dim": backend.separator_dim,
+    }
     return final, info
 
 

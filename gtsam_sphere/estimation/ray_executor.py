@@ -77,8 +77,8 @@ def assign_parts(sizes, n_workers: int) -> list[list[int]]:
 class _ActorHost(SubmapHost):
     """``SubmapHost`` whose submaps arrive as separate (resolved) constructor arguments."""
 
-    def __init__(self, parts: list[int], separator: np.ndarray, *submaps: MapProblem):
-        super().__init__(parts, list(submaps), separator)
+    def __init__(self, parts: list[int], separator: np.ndarray, resident, *submaps: MapProblem):
+        super().__init__(parts, list(submaps), separator, resident)
 
 
 class RayExecutor:
@@ -101,6 +101,10 @@ class RayExecutor:
         as many times (``max_task_retries``).
     init_kwargs : dict, optional
         More arguments of ``ray.init`` (``num_cpus``, ``include_dashboard``, ...).
+    resident : int or None
+        Submaps kept alive per actor between calls (:class:`~.partitioned.SubmapHost`):
+        with fewer actors than submaps, e.g. 1, an actor's memory is that of one
+        submap's work and the others' data, for more CPU per iteration. None: all.
     """
 
     def __init__(
@@ -111,6 +115,7 @@ class RayExecutor:
         address: str | None = None,
         max_restarts: int = 4,
         init_kwargs: dict | None = None,
+        resident: int | None = None,
     ):
         ray = import_ray()
         self.ray = ray
@@ -133,7 +138,8 @@ class RayExecutor:
         )(_ActorHost)
         self._sep_ref = sep_ref = ray.put(np.asarray(separator, np.uint64))  # held for restarts
         self.hosts = [
-            remote.remote(parts, sep_ref, *[self._refs[k] for k in parts]) for parts in self.groups
+            remote.remote(parts, sep_ref, resident, *[self._refs[k] for k in parts])
+            for parts in self.groups
         ]
         self.host_of = {k: self.hosts[w] for w, parts in enumerate(self.groups) for k in parts}
 
