@@ -572,11 +572,9 @@ def _isam2(scene, initial, pk, lk, noise):
     return isam.calculateEstimate()
 
 
-def test_levenberg_marquardt_with_rejected_steps_matches_gtsam(small_scene):
-    """A far start (landmarks 0.5 m off): many trial steps are rejected, so the Jacobians
-    computed ahead with a rejected trial's cost must never serve a later linearisation.
-    The Python-driven LM takes GTSAM's own LM path on the same blocks."""
-    scene = small_scene
+def _far_start_graph(scene):
+    """The Huber pixel blocks of ``scene`` with its gauge, and a far start (landmarks
+    0.5 m off): LM rejects many trial steps from there. Returns (graph, initial, blocks)."""
     pk = np.array([pose_key(i) for i in scene.obs_image], np.uint64)
     lk = np.array([point_key(j) for j in scene.obs_point], np.uint64)
     noise = M.Robust.Create(M.mEstimator.Huber.Create(1.0), M.Isotropic.Sigma(2, 0.3))
@@ -585,7 +583,15 @@ def test_levenberg_marquardt_with_rejected_steps_matches_gtsam(small_scene):
     blocks = ProjectionBlocks(scene.camera, scene.uv_px, pk, lk, noise)
     for f in blocks.factors():
         graph.add(f)
-    initial = perturbed_values(scene, 3, rot=0.1, trans=0.2, pts=0.5)
+    return graph, perturbed_values(scene, 3, rot=0.1, trans=0.2, pts=0.5), blocks
+
+
+def test_levenberg_marquardt_with_rejected_steps_matches_gtsam(small_scene):
+    """A far start (landmarks 0.5 m off): many trial steps are rejected, so the Jacobians
+    computed ahead with a rejected trial's cost must never serve a later linearisation.
+    The Python-driven LM takes GTSAM's own LM path on the same blocks."""
+    scene = small_scene
+    graph, initial, blocks = _far_start_graph(scene)
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(100)
     ours, info = levenberg_marquardt(graph, initial, params)
@@ -694,14 +700,7 @@ def test_optimize_lm_takes_gtsams_steps_with_the_given_ordering(small_scene):
     elimination ordering it takes GTSAM's steps (same iterations, costs and state), from
     a far start where steps are rejected, and reports one LMStatus."""
     scene = small_scene
-    pk = np.array([pose_key(i) for i in scene.obs_image], np.uint64)
-    lk = np.array([point_key(j) for j in scene.obs_point], np.uint64)
-    noise = M.Robust.Create(M.mEstimator.Huber.Create(1.0), M.Isotropic.Sigma(2, 0.3))
-    graph = gtsam.NonlinearFactorGraph()
-    _gauge(scene, graph)
-    for f in ProjectionBlocks(scene.camera, scene.uv_px, pk, lk, noise).factors():
-        graph.add(f)
-    initial = perturbed_values(scene, 3, rot=0.1, trans=0.2, pts=0.5)
+    graph, initial, blocks = _far_start_graph(scene)
     ordering = make_ordering(
         [point_key(j) for j in range(scene.n_points)],
         [pose_key(i) for i in range(scene.n_images)],
