@@ -334,8 +334,14 @@ def angular_errors_rad(
     R = np.asarray(R, dtype=float)
     t = np.asarray(t, dtype=float)
     p = np.einsum("...ij,nj->...ni", R, points_world) + t[..., None, :]
-    cross = np.linalg.norm(_cross(bearings_cam, p), axis=-1)
-    dot = np.einsum("...ni,ni->...n", p, bearings_cam)
+    return _angles_rad(bearings_cam, p)
+
+
+def _angles_rad(bearings: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Angles (radians, ``[0, pi]``) between bearings (N, 3) and camera-frame points
+    (..., N, 3), row by row."""
+    cross = np.linalg.norm(_cross(bearings, p), axis=-1)
+    dot = np.einsum("...ni,ni->...n", p, bearings)
     return np.arctan2(cross, dot)
 
 
@@ -739,9 +745,7 @@ def _ransac_finish(states: list[_RansacState], min_inliers: int, refine: bool) -
             """Angular errors (rows of ``pid``) and each problem's MSAC cost."""
             rows, owner, first = seg.rows(pid)
             p = np.einsum("nij,nj->ni", R_[owner], xo[rows]) + t_[owner]
-            cross = np.linalg.norm(_cross(fo[rows], p), axis=-1)
-            dot = np.einsum("ni,ni->n", p, fo[rows])
-            ang_ = np.nan_to_num(np.arctan2(cross, dot), nan=np.pi)
+            ang_ = np.nan_to_num(_angles_rad(fo[rows], p), nan=np.pi)
             thr_row = thr[pid][owner]
             return ang_, np.add.reduceat(np.minimum(ang_ * ang_, thr_row * thr_row), first)
 
