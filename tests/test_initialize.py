@@ -518,3 +518,22 @@ def test_joint_refine_jacobian_matches_finite_differences(warp_w, monkeypatch):
     out = _joint_refine(problem, [0, 1, 2, 3], hyp, rot, trans, mask, 3.0)
     assert checked == [2 + 4 + 24] * 2
     assert (out is not None) or warp_w != 0.0  # the lens's own shape refits
+
+
+def test_refit_covers_a_family_of_another_warp():
+    """``_to_refit``: the best zoomed hypothesis, then the best of another warp (the
+    pinhole ranked third behind two families of warp 0 is refitted), else the second."""
+    from gtsam_sphere.estimation.initialize import _family, _to_refit
+
+    pp = np.array([999.5, 999.5])
+    stereo, equi, pin = (_family(m, 100.0, pp) for m in ("stereographic", "equidistant", "pinhole"))
+    zoomed = [(510.0, stereo, 1.0), (524.0, equi, 1.0), (560.0, pin, 1.0)]
+    assert [z[1] for z in _to_refit(zoomed)] == [stereo, pin]
+    assert [z[1] for z in _to_refit(zoomed[:2])] == [stereo, equi]
+    fov = _family("fov", 100.0, pp)
+    assert [z[1] for z in _to_refit([(1.0, pin, 1.0), (2.0, fov, 1.0), (3.0, stereo, 1.0)])] == [
+        pin,
+        fov,
+    ]
+    same = [(1.0, stereo, 1.0), (2.0, equi, 1.0), (3.0, _family("equisolid", 90.0, pp), 1.0)]
+    assert [z[1] for z in _to_refit(same)] == [stereo, equi]
