@@ -149,3 +149,24 @@ def test_a_wide_perspective_lens_is_refitted_with_its_own_warp():
     assert res.ok.all()
     assert res.inlier_mask.mean() > 0.95, messages
     assert worst_deg < 2.0, worst_deg
+
+
+@pytest.mark.slow
+def test_a_lens_that_folds_goes_to_the_sphere_model_after_the_first_adjustment():
+    """A 250 deg orthographic lens: the radial mapping folds at 90 deg in the first
+    adjustment already, so the sphere model runs at once (the radial run's warp, term
+    and kNN stages, which ended in the same fold, are skipped) and is kept."""
+    from gtsam_sphere.estimation.calibrate import calibrate
+    from gtsam_sphere.io.dataset import parse_dataset
+    from gtsam_sphere.simulate import simulate_room
+
+    sim = simulate_room(CASES["33-sphere-250-room-r0.25s"].options())
+    lines: list[str] = []
+    calib = calibrate(parse_dataset(sim.dataset), None, lines.append)
+    early = [i for i, line in enumerate(lines) if "folds in the first adjustment" in line]
+    assert len(early) == 1, lines
+    assert not any(line.startswith("kNN round") for line in lines[: early[0]])
+    assert not any("terms the data do not support" in line for line in lines[: early[0]])
+    assert calib.statistics["trusted"]
+    assert str(calib.model) == "sphere+knn"
+    assert calib.statistics["model_fallback"].startswith("radial+knn -> sphere+knn")
