@@ -542,6 +542,9 @@ class Initialisation:
     warp_w : float
         The initial lens's warp (:class:`~.initialize.LensHypothesis`); not 0: the radial
         mapping gets the warp term ``w`` starting there.
+    folded : bool
+        The initial lens is the folded orthographic one (``f sin a`` up to 180 deg), whose
+        image no increasing radial mapping can follow.
     """
 
     dataset: Dataset
@@ -553,6 +556,7 @@ class Initialisation:
     inlier_mask: np.ndarray | None = None
     principal_point_px: np.ndarray | None = None
     warp_w: float = 0.0
+    folded: bool = False
 
 
 def initialise(
@@ -599,6 +603,7 @@ def initialise(
         inliers,
         init.principal_point_px.copy(),
         float(init.lens.warp_w),
+        bool(init.lens.folded),
     )
 
 
@@ -651,8 +656,12 @@ def with_control_sigma(
 class _FoldsEarly(Exception):
     """The first adjustment's radial mapping folds like a sphere (:func:`_folds_early`)."""
 
-    def __init__(self, init: Initialisation, fold_deg: float, seen_deg: float):
-        super().__init__(f"folds at {fold_deg:.1f} deg, rays seen to {seen_deg:.1f} deg")
+    def __init__(self, init: Initialisation, fold_deg: float, seen_deg: float, why: str = ""):
+        super().__init__(
+            why
+            or f"the first adjustment's mapping folds at {fold_deg:.1f} deg, rays seen "
+            f"to {seen_deg:.1f} deg"
+        )
         self.init = init
 
 
@@ -700,6 +709,8 @@ def _calibrate_once(
     raise_if_degenerate(geometry)  # warnings to the logger
     if init is None:
         init = initialise(dataset, options.seed, say)
+    if fold_probe and init.folded and options.model.uses_radial:
+        raise _FoldsEarly(init, 90.0, 180.0, "the initial lens is the folded orthographic one")
     dataset = with_control_sigma(init.dataset, control_sigma)
     init_R, init_t = init.cam_from_world_R, init.cam_from_world_t
     posed = check_geometry(dataset, (init_R, init_t))
@@ -873,13 +884,13 @@ def calibrate(
         # the whole radial run only if the sphere model cannot be trusted (seed 3 case 33
         # of the zoo, a 250 deg orthographic lens, ran both in full: 5.7x the median time)
         say(
-            f"the radial mapping folds in the first adjustment ({early}): calibrating "
-            f"with the {fallback} model (a lens that folds, e.g. orthographic past 180 deg)"
+            f"the radial mapping cannot follow this lens ({early}): calibrating with the "
+            f"{fallback} model (a lens that folds, e.g. orthographic past 180 deg)"
         )
         init = early.init
         alt, _ = _calibrate_once(dataset, replace(options, model=fallback), progress, init)
         if alt.statistics["trusted"]:
-            alt.statistics["model_fallback"] = why
+            alt.statistics["model_fallback"] = f"{options.model} -> {fallback}: {early}"
             calib = alt
         else:
             say(f"the {fallback} model is not trusted: the {options.model} model after all")
