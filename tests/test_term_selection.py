@@ -106,13 +106,7 @@ def test_initial_radial_mapping_ignores_what_ransac_rejected():
     lands within 2 % of the lens's ``f``; fitted to all, the shifted third drags it off."""
     from dataclasses import replace
 
-    from gtsam_sphere.estimation.calibrate import (
-        CalibrationOptions,
-        _calibrate_once,
-        initialise,
-    )
-    from gtsam_sphere.io.dataset import parse_dataset
-    from gtsam_sphere.simulate import SimulationOptions, simulate_room
+    from gtsam_sphere.estimation.calibrate import _calibrate_once, initialise
 
     sim = simulate_room(
         SimulationOptions(

@@ -654,14 +654,10 @@ def with_control_sigma(
 
 
 class _FoldsEarly(Exception):
-    """The first adjustment's radial mapping folds like a sphere (:func:`_folds_early`)."""
+    """A radial run stopped early: the lens folds like a sphere (the message says how)."""
 
-    def __init__(self, init: Initialisation, fold_deg: float, seen_deg: float, why: str = ""):
-        super().__init__(
-            why
-            or f"the first adjustment's mapping folds at {fold_deg:.1f} deg, rays seen "
-            f"to {seen_deg:.1f} deg"
-        )
+    def __init__(self, init: Initialisation, why: str):
+        super().__init__(why)
         self.init = init
 
 
@@ -677,11 +673,7 @@ def _fold_after_first_adjustment(
     (degrees), from the first adjustment's state."""
     theta = np.asarray(adj.values.atVector(INTRINSICS_KEY), float)
     cam = camera_from_theta(problem, theta, dataset.width, dataset.height)
-    R, t = _poses_from_values(adj.values, problem.n_images)
-    xyz = adjusted_target_xyz(problem, adj.values)
-    pc = np.einsum("nij,nj->ni", R[problem.obs_image], xyz[problem.obs_target])
-    pc += t[problem.obs_image]
-    inc = incidence_deg(pc)
+    inc = incidence_deg(adjusted_points_cam(problem, adj.values))
     inlier = np.linalg.norm(adj.residuals_px, axis=1) < 3.0 * adj.sigma_px
     seen = inc[inlier] if inlier.any() else inc
     return float(np.degrees(cam.max_alpha_rad())), float(np.max(seen))
@@ -696,9 +688,10 @@ def _calibrate_once(
 ) -> tuple[Calibration, Initialisation]:
     """One calibration run (see :func:`calibrate`); returns it and its initialisation.
 
-    ``fold_probe``: raise :class:`_FoldsEarly` when the first adjustment's radial mapping
-    already folds like a sphere (the rest of the radial run would only end in the same
-    fold, and :func:`calibrate` then tries the sphere model first)."""
+    ``fold_probe``: raise :class:`_FoldsEarly` when the initial lens is the folded
+    orthographic one, or when the first adjustment's radial mapping already folds like a
+    sphere (the rest of the radial run would only end in the same fold, and
+    :func:`calibrate` then tries the sphere model first)."""
     options = options or CalibrationOptions()
     say = progress or (lambda _line: None)
     rng = np.random.default_rng(options.seed)
@@ -709,8 +702,8 @@ def _calibrate_once(
     raise_if_degenerate(geometry)  # warnings to the logger
     if init is None:
         init = initialise(dataset, options.seed, say)
-    if fold_probe and init.folded and options.model.uses_radial:
-        raise _FoldsEarly(init, 90.0, 180.0, "the initial lens is the folded orthographic one")
+    if fold_probe and init.folded and options.fixed_intrinsics is None:
+        raise _FoldsEarly(init, "the initial lens is the folded orthographic one")
     dataset = with_control_sigma(init.dataset, control_sigma)
     init_R, init_t = init.cam_from_world_R, init.cam_from_world_t
     posed = check_geometry(dataset, (init_R, init_t))
@@ -788,7 +781,11 @@ def _calibrate_once(
     if fold_probe and radial_names is not None and problem.fixed_intrinsics is None:
         fold_deg, seen_deg = _fold_after_first_adjustment(problem, adj, dataset)
         if _folds_like_a_sphere_deg(fold_deg, seen_deg):
-            raise _FoldsEarly(init, fold_deg, seen_deg)
+            raise _FoldsEarly(
+                init,
+                f"the first adjustment's mapping folds at {fold_deg:.1f} deg, rays seen to "
+                f"{seen_deg:.1f} deg",
+            )
     if control_sigma is not None and options.control_sigma == CONTROL_SIGMA_AUTO:
         problem, adj, control_sigma = refine_control_sigma(
             problem, adj, exact_targets, control_sigma, opt, say, options.sigma_px is None
@@ -876,43 +873,36 @@ def calibrate(
     options = options or CalibrationOptions()
     say = progress or (lambda _line: None)
     fallback = Model.SPHERE_KNN if options.model.uses_knn else Model.SPHERE
-    why = f"{options.model} -> {fallback}: the radial mapping folded inside the observed field"
-    try:
-        calib, init = _calibrate_once(dataset, options, progress, init, fold_probe=True)
-    except _FoldsEarly as early:
-        # the first adjustment already folds like a sphere: the sphere model first, and
-        # the whole radial run only if the sphere model cannot be trusted (seed 3 case 33
-        # of the zoo, a 250 deg orthographic lens, ran both in full: 5.7x the median time)
+
+    def sphere_instead(reason: str, init: Initialisation) -> Calibration | None:
+        # a lens whose image folds (an orthographic lens past 180 deg: rays behind the
+        # camera land inside the disc again) has no increasing radial mapping; the
+        # sphere model holds it. Kept only if it can be trusted.
         say(
-            f"the radial mapping cannot follow this lens ({early}): calibrating with the "
+            f"the radial mapping cannot follow this lens ({reason}): calibrating with the "
             f"{fallback} model (a lens that folds, e.g. orthographic past 180 deg)"
         )
-        init = early.init
         alt, _ = _calibrate_once(dataset, replace(options, model=fallback), progress, init)
-        if alt.statistics["trusted"]:
-            alt.statistics["model_fallback"] = f"{options.model} -> {fallback}: {early}"
-            calib = alt
-        else:
+        if not alt.statistics["trusted"]:
+            return None
+        alt.statistics["model_fallback"] = f"{options.model} -> {fallback}: {reason}"
+        return alt
+
+    radial = options.model.uses_radial
+    try:
+        calib, init = _calibrate_once(dataset, options, progress, init, fold_probe=radial)
+    except _FoldsEarly as early:
+        # the fold showed early (the initial lens, or the first adjustment): the sphere
+        # model first, the whole radial run only if it cannot be trusted (seed 3 case 33
+        # of the zoo, a 250 deg orthographic lens, ran both in full: 5.7x the median time)
+        calib = sphere_instead(str(early), early.init)
+        if calib is None:
             say(f"the {fallback} model is not trusted: the {options.model} model after all")
-            calib, _ = _calibrate_once(dataset, options, progress, init)
+            calib, _ = _calibrate_once(dataset, options, progress, early.init)
     else:
-        if (
-            options.model.uses_radial
-            and not calib.statistics["trusted"]
-            and _folds_like_a_sphere(calib)
-        ):
-            # a lens whose image folds (an orthographic lens past 180 deg: rays behind
-            # the camera land inside the disc again) has no increasing radial mapping;
-            # the sphere model holds it
-            say(
-                f"the radial mapping folds inside the observed field: calibrating again "
-                f"with the {fallback} model (a lens that folds, e.g. orthographic past "
-                "180 deg)"
-            )
-            alt, _ = _calibrate_once(dataset, replace(options, model=fallback), progress, init)
-            if alt.statistics["trusted"]:
-                alt.statistics["model_fallback"] = why
-                calib = alt
+        if radial and not calib.statistics["trusted"] and _folds_like_a_sphere(calib):
+            reason = "the radial mapping folded inside the observed field"
+            calib = sphere_instead(reason, init) or calib
     for reason in calib.statistics["distrust"]:
         logger.warning("do not trust this result: %s", reason)
     return calib
@@ -1008,6 +998,15 @@ def adjusted_target_xyz(problem: BundleProblem, values: gtsam.Values) -> np.ndar
     return xyz
 
 
+def adjusted_points_cam(problem: BundleProblem, values: gtsam.Values) -> np.ndarray:
+    """Every observed target in its camera's frame (N, 3), metres: the adjusted poses
+    (``cam_from_world``) applied to :func:`adjusted_target_xyz`."""
+    R, t = _poses_from_values(values, problem.n_images)
+    xyz = adjusted_target_xyz(problem, values)
+    pc = np.einsum("nij,nj->ni", R[problem.obs_image], xyz[problem.obs_target])
+    return pc + t[problem.obs_image]
+
+
 #: log-warps :func:`select_warp` compares (``k = exp(w)`` from 0.2 to 5)
 WARP_GRID = tuple(round(float(w), 2) for w in np.arange(-1.6, 1.601, 0.05))
 #: a warp replaces the current one only if its one-term radial fit's robust residual is
@@ -1056,10 +1055,7 @@ def select_warp(
     """
     theta = np.asarray(adj.values.atVector(INTRINSICS_KEY), float)
     names = list(problem.intrinsics_names())
-    R, t = _poses_from_values(adj.values, problem.n_images)
-    xyz = adjusted_target_xyz(problem, adj.values)
-    pc = np.einsum("nij,nj->ni", R[problem.obs_image], xyz[problem.obs_target])
-    pc += t[problem.obs_image]
+    pc = adjusted_points_cam(problem, adj.values)
     pp = theta[:2]
     uv = problem.corrected_uv_px
     norm = np.linalg.norm(pc, axis=1)
