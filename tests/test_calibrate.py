@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+import types
 
 import numpy as np
 import pytest
@@ -203,3 +204,91 @@ def test_a_given_sigma_is_kept_through_the_knn_rounds():
     assert any(line.startswith("kNN round 1") for line in lines)  # the loop ran
     assert calib.statistics["sigma_px"] == 0.5
     assert not any("robust scale estimate" in line for line in lines)
+
+
+def _fold_branch(monkeypatch, sphere_trusted: bool):
+    """:func:`calibrate` with ``_calibrate_once`` replaced: the radial run reports an early
+    fold, the sphere run is (not) trusted. Returns the result, the calls and the lines."""
+    import gtsam_sphere.estimation.calibrate as cal_mod
+
+    init = object()
+    calls, lines = [], []
+
+    def result(model, trusted):
+        return types.SimpleNamespace(
+            model=str(model),
+            statistics={"trusted": trusted, "converged": True, "distrust": []},
+        )
+
+    def fake_once(dataset, options, progress, init_in=None, fold_probe=False):
+        calls.append((str(options.model), init_in, fold_probe))
+        if len(calls) == 1:
+            raise cal_mod._FoldsEarly(init, "the initial lens folds at 90.0 deg")
+        if options.model.uses_radial:
+            return result(options.model, True), init_in
+        return result(options.model, sphere_trusted), init_in
+
+    monkeypatch.setattr(cal_mod, "_calibrate_once", fake_once)
+    calib = calibrate(object(), CalibrationOptions(), lines.append)
+    return calib, calls, lines
+
+
+def test_an_early_fold_keeps_the_sphere_model_when_it_is_trusted(monkeypatch):
+    calib, calls, _ = _fold_branch(monkeypatch, sphere_trusted=True)
+    assert [c[0] for c in calls] == ["radial+knn", "sphere+knn"]
+    assert calls[0][2] is True and calls[1][2] is False  # only the radial run probes
+    assert calib.model == "sphere+knn"
+    assert "the initial lens folds" in calib.statistics["model_fallback"]
+
+
+def test_an_early_fold_with_an_untrusted_sphere_model_finishes_the_radial_run(monkeypatch):
+    calib, calls, lines = _fold_branch(monkeypatch, sphere_trusted=False)
+    # radial (stopped by the fold), sphere (not trusted), radial again without the probe
+    # (a second probe would stop it again) from the same initialisation
+    assert [c[0] for c in calls] == ["radial+knn", "sphere+knn", "radial+knn"]
+    assert calls[2][2] is False
+    assert calls[1][1] is calls[2][1] is not None
+    assert calib.model == "radial+knn" and calib.statistics["trusted"]
+    assert "model_fallback" not in calib.statistics
+    assert any("not trusted: the radial+knn model after all" in ln for ln in lines)
+
+
+def test_the_fold_probe_runs_between_the_first_adjustments_stages(monkeypatch):
+    """``adjust``'s ``after_stage`` hook carries the fold probe: a mapping found folding
+    after the first stage stops the radial run there (the sphere model follows); the
+    hook sees the stage's values, every residual norm (N,) and the new scale."""
+    import gtsam
+
+    import gtsam_sphere.estimation.calibrate as cal_mod
+
+    sim = simulate_room(
+        SimulationOptions(
+            lens="sphere", fov_deg=120.0, n_images=8, n_targets=80, noise_px=0.3, seed=4
+        )
+    )
+    dataset = parse_dataset(sim.dataset)
+    seen, verdicts = [], iter([True])  # the first probe says "folds", any later one not
+
+    def folds(fold_deg, seen_deg):
+        return next(verdicts, False)
+
+    real_probe = cal_mod._fold_probe
+
+    def spying_probe(problem, init, data, when):
+        probe = real_probe(problem, init, data, when)
+
+        def spy(values, r_px, sigma_px):
+            seen.append((when, type(values), np.shape(r_px), sigma_px))
+            probe(values, r_px, sigma_px)
+
+        return spy
+
+    monkeypatch.setattr(cal_mod, "_folds_like_a_sphere_deg", folds)
+    monkeypatch.setattr(cal_mod, "_fold_probe", spying_probe)
+    lines = []
+    calib = calibrate(dataset, CalibrationOptions(model="radial"), lines.append)
+    assert seen[0][:3] == ("a first-adjustment stage", gtsam.Values, (len(dataset.uv_px),))
+    assert seen[0][3] > 0
+    assert len(seen) == 1  # the radial run stopped at its first probe
+    assert "a first-adjustment stage's mapping folds" in calib.statistics["model_fallback"]
+    assert calib.model == "sphere"

@@ -171,9 +171,14 @@ _EXPECTED_FAILED_CHECKS = {
 }
 
 
-@parametrize_with_checks(
+# some scikit-learn versions hand pytest a generator of checks, which pytest deprecates
+# (PytestRemovedIn10Warning): the same parametrisation with the checks listed
+_CHECKS = parametrize_with_checks(
     [KNNCorrection()], expected_failed_checks=lambda estimator: _EXPECTED_FAILED_CHECKS
 )
+
+
+@pytest.mark.parametrize(_CHECKS.args[0], list(_CHECKS.args[1]), **_CHECKS.kwargs)
 def test_scikit_learn_estimator_checks(estimator, check):
     check(estimator)
 
