@@ -676,7 +676,11 @@ def _folds_like_a_sphere_deg(fold_deg: float, seen_deg: float) -> bool:
 
 
 def _fold_of_adjusted_mapping(
-    problem: BundleProblem, values: gtsam.Values, r_px: np.ndarray, sigma_px: float, dataset
+    problem: BundleProblem,
+    values: gtsam.Values,
+    r_px: np.ndarray,
+    sigma_px: float,
+    dataset: Dataset,
 ) -> tuple[float, float]:
     """Where the adjusted radial mapping of ``values`` folds and the widest ray whose
     residual ``r_px`` (N,) is within 3 ``sigma_px`` (degrees)."""
