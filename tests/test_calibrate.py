@@ -292,3 +292,104 @@ def test_the_fold_probe_runs_between_the_first_adjustments_stages(monkeypatch):
     assert len(seen) == 1  # the radial run stopped at its first probe
     assert "a first-adjustment stage's mapping folds" in calib.statistics["model_fallback"]
     assert calib.model == "sphere"
+
+
+def test_the_initial_radial_mapping_starts_from_sane_coefficients():
+    """Over a narrow range of the warped variable the high powers are tiny and a
+    least-squares fit of every term gives huge coefficients (seed 5 case 05 of the zoo:
+    up to -7.9e8, then a crawling adjustment). ``initial_radial`` drops the highest terms
+    until every coefficient is at most ``RADIAL_START_MAX`` and pads them with zeros."""
+    from gtsam_sphere.core.camera import radial_warp
+    from gtsam_sphere.estimation.calibrate import (
+        RADIAL_START_MAX,
+        _fit_radial,
+        initial_radial,
+    )
+
+    rng = np.random.default_rng(3)
+    warp_w, n_terms = -1.39, 6
+    alpha = rng.uniform(0.02, 1.3, 400)  # up to 75 deg, a 150 deg lens
+    r_true = 80.0 * np.tan(alpha)  # a pinhole lens, c = 80 px
+    r_obs = r_true + rng.normal(0.0, 2.0, alpha.size)
+    phi = np.exp(warp_w) * radial_warp(alpha, warp_w)
+    wild = _fit_radial(r_obs, phi, n_terms)
+    assert np.max(np.abs(wild[1:])) > RADIAL_START_MAX  # what the guard is for
+    az = rng.uniform(-np.pi, np.pi, alpha.size)
+    points_cam = np.column_stack(
+        [np.sin(alpha) * np.cos(az), np.sin(alpha) * np.sin(az), np.cos(alpha)]
+    )
+    pp = np.array([640.0, 400.0])
+    uv = pp + r_obs[:, None] * np.column_stack([np.cos(az), np.sin(az)])
+    cg = initial_radial(uv, points_cam, pp, n_terms, warp_w)
+    assert cg.shape == (n_terms + 1,)
+    assert np.all(np.abs(cg[1:]) <= RADIAL_START_MAX)
+    assert cg[0] > 0 and np.count_nonzero(cg[1:]) < n_terms  # fewer terms, zero-padded
+
+
+def test_a_term_selection_that_costs_sigma_is_reverted(monkeypatch):
+    """The Wald test trusts the covariance; when the reduced model's robust sigma comes
+    out more than ``TERMS_SIGMA_GAIN`` times the full one's, the terms are kept (seed 5
+    case 05: 1.02 -> 19.6 px, and the kNN rounds learned a 10 px "field", trusted)."""
+    import dataclasses
+
+    import gtsam_sphere.estimation.calibrate as cal_mod
+
+    sim = simulate_room(
+        SimulationOptions(
+            lens="equidistant", fov_deg=150.0, n_images=8, n_targets=80, noise_px=0.3, seed=5
+        )
+    )
+    real = cal_mod.readjust
+
+    def worse_when_reduced(*args, **kwargs):
+        adj = real(*args, **kwargs)
+        if kwargs.get("warm"):  # select_terms' re-adjustment of the reduced model
+            return dataclasses.replace(adj, sigma_px=10.0 * adj.sigma_px)
+        return adj
+
+    monkeypatch.setattr(cal_mod, "readjust", worse_when_reduced)
+    lines = []
+    options = CalibrationOptions(model="radial", covariance=False)
+    calib = calibrate(parse_dataset(sim.dataset), options, lines.append)
+    dropped = [ln for ln in lines if ln.startswith("terms the data do not support")]
+    assert dropped, lines  # the test dropped something, then:
+    assert any(ln.startswith("without ") and ln.endswith(": kept") for ln in lines), lines
+    terms = dropped[0].split(": ", 1)[1].split(";")[0].split(", ")
+    assert set(terms) <= set(calib.statistics["intrinsics_names"]), terms
+
+
+def test_a_final_sigma_far_above_the_first_adjustments_is_not_trusted(monkeypatch):
+    """Every step after the first adjustment is kept only when it fits about as well, so
+    a final robust sigma above ``SIGMA_GROWTH`` times the first adjustment's says one of
+    them broke the fit. With the factor at 0 every calibration trips it (the wiring);
+    the default calibration of the same data is trusted."""
+    import gtsam_sphere.estimation.calibrate as cal_mod
+
+    sim = simulate_room(
+        SimulationOptions(
+            lens="equidistant", fov_deg=150.0, n_images=8, n_targets=80, noise_px=0.3, seed=5
+        )
+    )
+    options = CalibrationOptions(model="radial", covariance=False)
+    calib = calibrate(parse_dataset(sim.dataset), options)
+    assert calib.statistics["trusted"], calib.statistics["distrust"]
+    monkeypatch.setattr(cal_mod, "SIGMA_GROWTH", 0.0)
+    calib = calibrate(parse_dataset(sim.dataset), options)
+    assert not calib.statistics["trusted"]
+    assert any("times the first adjustment's" in r for r in calib.statistics["distrust"])
+
+
+def test_a_knn_loop_that_runs_out_of_rounds_is_not_trusted():
+    """The loop needs two rounds to see the CV score stable; with one round it runs out,
+    says so, keeps its best round, and the calibration is not trusted."""
+    sim = simulate_room(
+        SimulationOptions(
+            lens="equidistant", fov_deg=150.0, n_images=8, n_targets=80, noise_px=0.3, seed=5
+        )
+    )
+    lines = []
+    options = CalibrationOptions(covariance=False, knn={"max_rounds": 1})
+    calib = calibrate(parse_dataset(sim.dataset), options, lines.append)
+    assert any(ln.startswith("kNN loop not stable after 1 rounds") for ln in lines), lines
+    assert not calib.statistics["trusted"]
+    assert any("did not become stable" in r for r in calib.statistics["distrust"])

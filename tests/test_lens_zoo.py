@@ -51,6 +51,16 @@ SEED1_SUBSET = (
     "35-sphere-360-object3d-r0.4s",
     "26-stereographic-300-object3d-r0.4s-imp",
 )
+#: cases of the sixth list (``--seed 5``, first run in session 12) that were trusted at
+#: 327x and 50x the oracle's 3D error: a 170 deg orthographic lens on a board (13 of 20
+#: boards posed mirrored behind the camera, which the folded lens images the same) and
+#: a 150 deg pinhole lens with an error field on an object (a wild initial polynomial,
+#: then a term selection that multiplied sigma by 19)
+SEED5 = {c.id: c for c in ZOO.build_cases(5)}
+SEED5_SUBSET = (
+    "31-sphere-170-board-diag-imp",
+    "05-pinhole-150-object3d-r0.4s-imp",
+)
 
 
 def test_the_zoo_has_every_family_scene_and_circle():
@@ -79,8 +89,14 @@ def test_the_zoo_has_every_family_scene_and_circle():
 @pytest.mark.slow
 @pytest.mark.parametrize(
     "cases, case_id",
-    [(CASES, c) for c in SUBSET] + [(SEED1, c) for c in SEED1_SUBSET],
-    ids=[*SUBSET, *(f"seed1-{c}" for c in SEED1_SUBSET)],
+    [(CASES, c) for c in SUBSET]
+    + [(SEED1, c) for c in SEED1_SUBSET]
+    + [(SEED5, c) for c in SEED5_SUBSET],
+    ids=[
+        *SUBSET,
+        *(f"seed1-{c}" for c in SEED1_SUBSET),
+        *(f"seed5-{c}" for c in SEED5_SUBSET),
+    ],
 )
 def test_zoo_case_default_calibration_matches_the_oracle(cases, case_id, tmp_path):
     row = ZOO.run_case(cases[case_id], tmp_path)
@@ -134,6 +150,20 @@ def test_a_folded_lens_is_initialised_on_both_hemispheres():
     assert res.ok.all()
     assert worst_deg < 2.0, worst_deg
     assert res.inlier_mask.mean() > 0.95
+
+
+@pytest.mark.slow
+def test_a_board_seen_by_a_folded_lens_is_posed_in_front_of_it():
+    """Seed 5 case 31: a 170 deg orthographic lens on a board. The folded hypothesis
+    (chosen by 2 %) images a ray and its mirror behind the camera at the same pixel, so
+    every board has a mirror pose with the same image; RANSAC returned it for 13 of 20.
+    They are turned back to the front, where the lens sees: every initial rotation within
+    7.1 deg of the truth (the mirrored ones were 41-131 deg off)."""
+    _, res, messages, worst_deg = _initialise_case(SEED5["31-sphere-170-board-diag-imp"])
+    assert res.lens.folded, res.lens.describe()
+    assert any(m.endswith("taken in front") for m in messages), messages
+    assert res.ok.all()
+    assert worst_deg < 10.0, worst_deg
 
 
 @pytest.mark.slow

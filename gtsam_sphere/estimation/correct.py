@@ -170,6 +170,9 @@ def grey_box_loop(problem, adj, optimizer, options, say: Callable[[str], None], 
     history : list of dict
         Optimiser iterations of every round, with ``knn_round`` and
         ``cv_rmse_px`` keys.
+    stable : bool
+        Both figures became stable within ``knn["max_rounds"]`` (False: the loop ran
+        out of rounds, which the calibration reports as a reason not to trust it).
     """
     # local-linear kNN pays where the field is hundreds of pixels (the pure sphere
     # mapping); on top of a parametric lens (radial, Brown) the field is small and smooth
@@ -189,6 +192,7 @@ def grey_box_loop(problem, adj, optimizer, options, say: Callable[[str], None], 
     prev_cv = None
     say(f"kNN round 0: RMS {rms:.4f} px within 5 sigma (no correction)")
     searches = NeighbourSearches()  # the rounds search the same pixels
+    stable = False
     for rnd in range(1, int(cfg["max_rounds"]) + 1):
         target = problem.corrections_px + adj.residuals_px
         train = adj.weights >= 0.5 if cfg["train"] == "weights" else None
@@ -228,9 +232,12 @@ def grey_box_loop(problem, adj, optimizer, options, say: Callable[[str], None], 
         ] * max(prev_cv, 1e-12)
         if stable_rms and stable_cv:
             say(f"kNN loop stable after {rnd} rounds")
+            stable = True
             break
         prev_cv = model.cv_rmse_px_
+    if not stable:
+        say(f"kNN loop not stable after {cfg['max_rounds']} rounds: the best round is kept")
     _, adj, model, corrections = best
     problem.corrections_px = corrections
     problem.build()  # blocks in step with the kept corrections
-    return adj, model, history
+    return adj, model, history, stable

@@ -61,6 +61,7 @@ noise seen from 2-4 m move by 0.0025-0.005 rad, which ``threshold_rad = 0.01`` k
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
@@ -68,7 +69,10 @@ import numpy as np
 
 from ..core.camera import radial_warp
 from ..core.errors import InitialisationError
+from ..core.geometry import fit_rigid
 from ..core.p3p import ransac_poses
+
+logger = logging.getLogger(__name__)
 
 __all__ = [
     "MAPPINGS",
@@ -1099,6 +1103,8 @@ def initialize_poses(
         posed = _pose_all(problem, eligible, lens, thr, image_seeds, min_inliers)
         posed = _final_refit(problem, eligible, lens, thr, image_seeds, min_inliers, posed, say)
         rot, trans, ok, inlier_mask, fails, lens = posed
+        if lens.folded:
+            _in_front_of_the_fold(problem, lens, rot, trans, ok, inlier_mask, thr, say)
         frac = inlier_mask.sum() / max(n_eligible_obs, 1)
         if frac >= _MIN_INLIER_FRACTION and ok.any():
             failures.update(fails)
@@ -1184,6 +1190,61 @@ def _pose_all(problem, images, lens, thr, seeds, min_inliers):
             )
     problem.all_observations = False
     return rot, trans, ok, inlier_mask, fails, lens
+
+
+def _in_front_of_the_fold(problem, lens, rot, trans, ok, inlier_mask, thr, say) -> int:
+    """Turn the poses of a folded lens that look through the fold back to the front.
+
+    The folded orthographic lens images a ray and its mirror ``z -> -z`` at the same
+    pixel, so a planar target (or one face of an object) has two poses with the same
+    image: in front of the camera and mirrored behind it, and RANSAC returns either
+    (seed 5 case 31 of the zoo, a 170 deg orthographic lens on a board: 13 of 20 boards
+    behind the camera, every camera station ~0.2 m off, trusted). An image whose
+    consistent observations lie mostly past 90 deg is replaced, in place, by the mirror
+    pose (the rigid fit of its targets to their mirrored camera-frame points) when that
+    explains at least as many observations for at most 2 % more pixel cost: the front,
+    where every lens sees, is the answer when the image cannot tell. Returns the number
+    of images turned.
+    """
+    turned = 0
+    for i in np.flatnonzero(ok):
+        idx = problem.obs_of_image[i]
+        inl = inlier_mask[idx]
+        if inl.sum() < 4:
+            continue
+        p = problem.points[idx] @ rot[i].T + trans[i]
+        if np.median(p[inl, 2]) >= 0.0:
+            continue
+        R2, t2 = fit_rigid(problem.points[idx][inl], p[inl] * np.array([1.0, 1.0, -1.0]))
+        err = problem.errors_px(idx, lens, rot[i], trans[i])
+        err2 = problem.errors_px(idx, lens, R2, t2)
+        cost = np.minimum(err * err, thr * thr).sum()
+        cost2 = np.minimum(err2 * err2, thr * thr).sum()
+        inl2 = err2 < thr
+        if inl2.sum() >= inl.sum() and cost2 <= 1.02 * cost:
+            rot[i], trans[i] = R2, t2
+            inlier_mask[idx] = inl2
+            turned += 1
+    if turned:
+        say(
+            f"{turned} images posed behind the camera have a mirror pose in front with the "
+            "same image (a folded lens): taken in front"
+        )
+        behind = [
+            int(i)
+            for i in np.flatnonzero(ok)
+            if np.any((problem.points[problem.obs_of_image[i]] @ rot[i].T + trans[i])[:, 2] < 0)
+        ]
+        if behind:
+            # the lens does see past 90 deg: an image turned may as well be behind
+            logger.warning(
+                "the lens folds and sees past 90 deg (images %s): %d images that could be "
+                "posed either in front of the camera or mirrored behind it were taken in "
+                "front; their poses (not the lens) are undetermined",
+                behind[:10],
+                turned,
+            )
+    return turned
 
 
 def _refit(problem, images, seeds, hyp, thr, cost, say):

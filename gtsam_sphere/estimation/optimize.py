@@ -46,14 +46,18 @@ class OptimizerOptions:
     kind : OptimizerKind
     max_iterations : int
     relative_tolerance : float
-        Stop when the cost decreases by less than this fraction.
+        Stop when the cost decreases by less than this fraction (1e-6, Ceres'
+        default ``function_tolerance``). It was 1e-9: robust stages then ran on for
+        tens of iterations at changes of 1e-7 (IRLS converges linearly), a 340 deg
+        lens's calibration took 197 iterations against 79, 21.3 s against 12.7 s,
+        with the same 3D error (0.889x the oracle's).
     absolute_tolerance : float
         Stop when the cost decreases by less than this.
     """
 
     kind: OptimizerKind = OptimizerKind.LM
     max_iterations: int = 100
-    relative_tolerance: float = 1e-9
+    relative_tolerance: float = 1e-6
     absolute_tolerance: float = 1e-9
 
 
