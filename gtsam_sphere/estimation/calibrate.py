@@ -722,28 +722,32 @@ def _fold_probe(problem: BundleProblem, init: Initialisation, dataset: Dataset, 
     return probe
 
 
-def _stage_probe(fold_probe, warp_probe: bool, problem: BundleProblem, say):
-    """``after_stage`` hook of the first adjustment: the fold probe (may raise), then
-    the warp probe: True (end the adjustment there) when another warp already fits
-    the geometry clearly better (:func:`_better_warp`), as :func:`select_warp` re-warps
-    and adjusts again from that state anyway."""
+@dataclass
+class _StageProbe:
+    """``after_stage`` hook of the first adjustment: the fold probe (may raise), then,
+    with ``warp``, the warp probe: True (end the adjustment there, ``fired``) when
+    another warp already fits the geometry clearly better (:func:`_better_warp`), as
+    :func:`select_warp` re-warps and adjusts again from that state anyway."""
 
-    def probe(values: gtsam.Values, r_px: np.ndarray, sigma_px: float) -> bool:
-        if fold_probe is not None:
-            fold_probe(values, r_px, sigma_px)
-        if not warp_probe:
+    fold: Callable[[gtsam.Values, np.ndarray, float], None] | None
+    warp: bool
+    problem: BundleProblem
+    say: Callable[[str], None]
+    fired: bool = False
+
+    def __call__(self, values: gtsam.Values, r_px: np.ndarray, sigma_px: float) -> bool:
+        if self.fold is not None:
+            self.fold(values, r_px, sigma_px)
+        if not self.warp:
             return False
-        choice = _better_warp(problem, values, r_px, sigma_px)
+        choice = _better_warp(self.problem, values, r_px, sigma_px)
         if choice is not None:
-            say(
+            self.say(
                 f"warp w = {choice[0]:.2f} already fits better than the current one "
                 f"({choice[1]:.3f} px vs {choice[2]:.3f} px): first adjustment ends here"
             )
-            probe.fired = True
-        return choice is not None
-
-    probe.fired = False
-    return probe
+            self.fired = True
+        return self.fired
 
 
 def _calibrate_once(
@@ -838,7 +842,7 @@ def _calibrate_once(
     # the probe also runs between the first adjustment's noise stages: a mapping that
     # folds like a sphere spends them crawling (seed 3 case 33 of the zoo, a 250 deg
     # orthographic lens: three Huber stages of 100 iterations each, 5.7 s of 9.8)
-    stage_probe = _stage_probe(
+    stage_probe = _StageProbe(
         _fold_probe(problem, init, dataset, "a first-adjustment stage") if probing else None,
         problem.fixed_intrinsics is None and options.model.uses_radial,
         problem,
@@ -892,25 +896,9 @@ def _calibrate_once(
         calib.statistics["control_sigma_mode"] = (
             "auto" if options.control_sigma == CONTROL_SIGMA_AUTO else "given"
         )
-    calib.statistics["distrust"] = distrust_reasons(calib, cov_theta, options, problem)
-    if not knn_stable:
-        # the default lens models leave a small, smooth field the loop settles on in 2-3
-        # rounds; a field still moving after all of them is learning the misfit of a
-        # wrong geometry (seed 4 case 05 of the zoo, a 150 deg pinhole posed 56 px off
-        # its principal point: 25 rounds, trusted at 31x the oracle's 3D error)
-        calib.statistics["distrust"].append(
-            "the kNN correction did not become stable (CV and adjustment RMS) within "
-            "its rounds (options.knn max_rounds)"
-        )
-    if options.sigma_px is None and calib.statistics["sigma_px"] > SIGMA_GROWTH * first_sigma_px:
-        # every later step (warp, terms, shape prior, kNN) is kept only when it fits at
-        # least about as well: a final scale far above the first adjustment's means one
-        # of them broke the fit (seed 5 case 05 before RADIAL_START_MAX: 1.02 -> 26.9 px)
-        calib.statistics["distrust"].append(
-            f"the final robust sigma ({calib.statistics['sigma_px']:.3f} px) is "
-            f"{calib.statistics['sigma_px'] / first_sigma_px:.1f} times the first "
-            f"adjustment's ({first_sigma_px:.3f} px)"
-        )
+    calib.statistics["distrust"] = distrust_reasons(
+        calib, cov_theta, options, problem, knn_stable, first_sigma_px
+    )
     calib.statistics["trusted"] = not calib.statistics["distrust"]
     calib.extra["geometry_warnings"] = [
         {"code": str(p.code), "message": p.message, "advice": p.advice} for p in geometry
@@ -1344,13 +1332,22 @@ def select_terms(
     return reduced, new
 
 
-def distrust_reasons(calib: Calibration, cov_theta, options, problem: BundleProblem) -> list[str]:
+def distrust_reasons(
+    calib: Calibration,
+    cov_theta,
+    options,
+    problem: BundleProblem,
+    knn_stable: bool = True,
+    first_sigma_px: float | None = None,
+) -> list[str]:
     """Why a calibration should not be trusted (empty when it can be).
 
     Not converged (iteration cap, divergence, stalled); singular normal
     equations (an intrinsic parameter not determined by the data); a radial
     mapping that stops increasing inside the observed field (it would fold the
-    image); more than 20% of the observations beyond 5 sigma.
+    image); more than 20% of the observations beyond 5 sigma; a kNN loop that ran out
+    of rounds (``knn_stable`` False); an estimated robust sigma above
+    :data:`SIGMA_GROWTH` times ``first_sigma_px``, the first adjustment's (px).
     """
     st = calib.statistics
     out = []
@@ -1368,6 +1365,24 @@ def distrust_reasons(calib: Calibration, cov_theta, options, problem: BundleProb
         )
     if st["n_outliers"] > 0.2 * max(st["n_observations"], 1):
         out.append(f"{st['n_outliers']} of {st['n_observations']} observations are beyond 5 sigma")
+    if not knn_stable:
+        # the default lens models leave a small, smooth field the loop settles on in 2-3
+        # rounds; a field still moving after all of them is learning the misfit of a
+        # wrong geometry (seed 4 case 05 of the zoo, a 150 deg pinhole posed 56 px off
+        # its principal point: 25 rounds, trusted at 31x the oracle's 3D error)
+        out.append(
+            "the kNN correction did not become stable (CV and adjustment RMS) within "
+            "its rounds (options.knn max_rounds)"
+        )
+    growth = st["sigma_px"] / first_sigma_px if first_sigma_px else 0.0
+    if options.sigma_px is None and growth > SIGMA_GROWTH:
+        # every later step (warp, terms, shape prior, kNN) is kept only when it fits at
+        # least about as well: a final scale far above the first adjustment's means one
+        # of them broke the fit (seed 5 case 05 before RADIAL_START_MAX: 1.02 -> 26.9 px)
+        out.append(
+            f"the final robust sigma ({st['sigma_px']:.3f} px) is {growth:.1f} times the "
+            f"first adjustment's ({first_sigma_px:.3f} px)"
+        )
     return out
 
 
@@ -1430,23 +1445,23 @@ def classify_outliers(
     # through the exact correction, whose inversion is ~30 kNN queries (ov_plane_train:
     # 165 outliers in 18 images took 17.7 of the calibration's 25 s with every target
     # projected exactly per outlier, 2.1 s once per image)
-    projected: dict[int, np.ndarray] = {}
+    projected: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # image -> (points, pixels)
     for o in index[np.argsort(-r_norm[index])]:
         i = int(dataset.obs_image[o])
         uv = dataset.uv_px[o]
-        pc = xyz @ R[i].T + t[i]
         if i not in projected:
+            pc_i = xyz @ R[i].T + t[i]
             with np.errstate(invalid="ignore"):
-                projected[i] = camera.project(pc, valid_only=False)
-        d = np.linalg.norm(projected[i] - uv, axis=1)
+                projected[i] = pc_i, camera.project(pc_i, valid_only=False)
+        pc, proj = projected[i]
+        d = np.linalg.norm(proj - uv, axis=1)
         d[dataset.obs_target[o]] = np.inf
         d[~np.isfinite(d)] = np.inf
         j = int(np.argmin(d))
         if np.isfinite(d[j]):
             with np.errstate(invalid="ignore"):
                 exact = camera.project(pc[j : j + 1], exact=True, valid_only=False)
-            d[j] = float(np.linalg.norm(exact[0] - uv))
-            d[j] = d[j] if np.isfinite(d[j]) else np.inf
+            d[j] = np.nan_to_num(np.linalg.norm(exact[0] - uv), nan=np.inf)
         entry = {
             "image": dataset.image_ids[i],
             "target": dataset.target_ids[dataset.obs_target[o]],

@@ -538,7 +538,7 @@ class _Problem:
         out = []
         for (image, hyp, _), res in zip(jobs, results):
             err = self.errors_px(rows[image], hyp, res.R, res.t)
-            out.append((res, float(np.minimum(err * err, thr_px * thr_px).sum()), err))
+            out.append((res, _msac_px2(err, thr_px), err))
         return out
 
     def costs(self, hyps, images, seeds, thr_px, max_iterations, refine, keep=None, groups=None):
@@ -586,6 +586,11 @@ class _Problem:
     def cost(self, images, seeds, hyp, thr_px, max_iterations, refine):
         """Total pixel MSAC cost of one hypothesis over ``images`` (px^2)."""
         return float(self.costs([hyp], images, seeds, thr_px, max_iterations, refine)[0])
+
+
+def _msac_px2(err_px: np.ndarray, thr_px: float) -> float:
+    """MSAC cost (px^2) of pixel errors (N,): each squared error capped at ``thr_px^2``."""
+    return float(np.minimum(err_px * err_px, thr_px * thr_px).sum())
 
 
 def _members(groups: np.ndarray) -> list[np.ndarray]:
@@ -1218,10 +1223,8 @@ def _in_front_of_the_fold(problem, lens, rot, trans, ok, inlier_mask, thr, say) 
         R2, t2 = fit_rigid(problem.points[idx][inl], p[inl] * np.array([1.0, 1.0, -1.0]))
         err = problem.errors_px(idx, lens, rot[i], trans[i])
         err2 = problem.errors_px(idx, lens, R2, t2)
-        cost = np.minimum(err * err, thr * thr).sum()
-        cost2 = np.minimum(err2 * err2, thr * thr).sum()
         inl2 = err2 < thr
-        if inl2.sum() >= inl.sum() and cost2 <= 1.02 * cost:
+        if inl2.sum() >= inl.sum() and _msac_px2(err2, thr) <= 1.02 * _msac_px2(err, thr):
             rot[i], trans[i] = R2, t2
             inlier_mask[idx] = inl2
             turned += 1
