@@ -395,14 +395,19 @@ def test_a_knn_loop_that_runs_out_of_rounds_is_not_trusted():
     assert any("did not become stable" in r for r in calib.statistics["distrust"])
 
 
-def test_outliers_are_classified_as_with_every_target_projected_exactly():
-    """``classify_outliers`` projects each image's targets once, through the tabulated
-    correction, and only the nearest one exactly: the causes, matches and distances are
-    those of projecting every target exactly for every outlier (the former rule, 17.7 s
-    of 25 on ov_plane_train)."""
+@pytest.mark.parametrize("queries, path", [(0, "exact"), (10**9, "table")])
+def test_outliers_are_classified_as_with_every_target_projected_exactly(monkeypatch, queries, path):
+    """``classify_outliers`` projects each image's targets once, exactly or (when that
+    costs more than building the table) through the tabulated correction and only the
+    nearest one exactly: either way the causes, matches and distances are those of
+    projecting every target exactly for every outlier (the former rule, 17.7 s of 25 on
+    ov_plane_train)."""
     from gtsam_sphere.core.camera import SphereCamera
+    from gtsam_sphere.estimation import calibrate as calibrate_module
     from gtsam_sphere.estimation.calibrate import classify_outliers
     from gtsam_sphere.estimation.correct import KNNCorrection
+
+    monkeypatch.setattr(calibrate_module, "EXACT_QUERIES", queries)
 
     rng = np.random.default_rng(7)
     grid = rng.uniform(0, 1200, size=(600, 2))
@@ -428,6 +433,7 @@ def test_outliers_are_classified_as_with_every_target_projected_exactly():
     )
     res = uv - true_uv
     got = classify_outliers(cam, dataset, R, t, xyz, res, wrong)
+    assert (cam._table is not None) == (path == "table")
     # the reference: every target projected exactly for every outlier
     every = cam.project(xyz, exact=True, valid_only=False)
     ref = {}

@@ -433,3 +433,40 @@ def test_lens_zoo_case_list_builds(monkeypatch):
         build_lens(c.options())
     quick = zoo.quick_cases(cases)
     assert 6 <= len(quick) <= 10 and {c.scene for c in quick} == {"room", "board", "object3d"}
+
+
+def test_oracle_references_know_less_and_do_worse():
+    """The zoo's three references on one board with a 2 px error field: the oracle
+    (lens and field known), the family oracle (principal point and distance estimated)
+    and the field-blind oracle (the field left in the measurements)."""
+    from gtsam_sphere.simulate.oracle import oracle_calibration
+
+    sim = simulate_room(
+        SimulationOptions(
+            scene="board", lens="equidistant", fov_deg=120, error_field_px=2.0, **OBJECTS
+        )
+    )
+    lens = sim.truth["lens"]["lens"]
+    assert sim.truth["lens"]["kind"] == "error-field"
+    known = oracle_calibration(sim)
+    family = oracle_calibration(sim, known_lens=False)
+    blind = oracle_calibration(sim, known_field=False)
+    cam = known.camera
+    assert (cam.xp, cam.yp, cam.c) == (lens["cx"], lens["cy"], lens["f"])
+    fam = family.camera
+    assert 0 < math.hypot(fam.xp - lens["cx"], fam.yp - lens["cy"]) < 2.0
+    assert 0 < abs(fam.c - lens["f"]) < 0.01 * lens["f"]
+    assert (blind.camera.xp, blind.camera.c) == (lens["cx"], lens["f"])
+    # what the poses absorb of the field moves the camera stations
+    from gtsam_sphere.analysis.evaluate import evaluate_checkpoints
+
+    ids = [im["id"] for im in sim.truth["images"]]
+    xyz = np.array([im["centre_world"] for im in sim.truth["images"]], float)
+
+    def stations_rmse_m(calib):
+        R, t = np.asarray(calib.cam_from_world_R), np.asarray(calib.cam_from_world_t)
+        centres = -np.einsum("kji,kj->ki", R, t)
+        return evaluate_checkpoints(list(calib.image_ids), centres, ids, xyz).rmse_3d
+
+    assert stations_rmse_m(blind) > 1.5 * stations_rmse_m(known)
+    assert blind.statistics["rms_px"] > known.statistics["rms_px"]

@@ -1402,6 +1402,11 @@ def intrinsics_sigma(problem: BundleProblem, values: gtsam.Values) -> np.ndarray
     return None if cov is None else np.sqrt(np.diag(cov))
 
 
+#: kNN queries of one exact projection (the correction's inversion), against about one
+#: per node of the tabulated correction: which of the two :func:`classify_outliers` uses
+EXACT_QUERIES = 30
+
+
 def classify_outliers(
     camera: SphereCamera,
     dataset: Dataset,
@@ -1440,11 +1445,16 @@ def classify_outliers(
     """
     out = []
     r_norm = np.linalg.norm(residuals_px, axis=1)
-    # every target's pixel in an image, once per image and through the tabulated
-    # correction (within 0.01 px RMS of it); only the nearest target is projected
-    # through the exact correction, whose inversion is ~30 kNN queries (ov_plane_train:
-    # 165 outliers in 18 images took 17.7 of the calibration's 25 s with every target
-    # projected exactly per outlier, 2.1 s once per image)
+    # every target's pixel in an image, once per image; only the nearest target needs the
+    # exact correction, whose inversion is ~30 kNN queries (ov_plane_train: 165 outliers
+    # in 18 images took 17.7 of the calibration's 25 s with every target projected
+    # exactly per outlier). The others go through the tabulated correction (within 0.01
+    # px RMS of it) when building the table, ~(W / 4) x (H / 4) nodes, costs less than
+    # inverting every target of those images exactly (ov_plane_train: 18 x 484 targets,
+    # table 2.1 s, exact 5.8 s); else exactly (a 2000 x 2000 room with 2 outliers in
+    # 331 targets: table 0.77 s of the 5.7 s calibration, exact 0.015 s)
+    n_images = len(np.unique(dataset.obs_image[index]))
+    use_table = n_images * len(xyz) * EXACT_QUERIES > (camera.width / 4) * (camera.height / 4)
     projected: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # image -> (points, pixels)
     for o in index[np.argsort(-r_norm[index])]:
         i = int(dataset.obs_image[o])
@@ -1452,13 +1462,13 @@ def classify_outliers(
         if i not in projected:
             pc_i = xyz @ R[i].T + t[i]
             with np.errstate(invalid="ignore"):
-                projected[i] = pc_i, camera.project(pc_i, valid_only=False)
+                projected[i] = pc_i, camera.project(pc_i, exact=not use_table, valid_only=False)
         pc, proj = projected[i]
         d = np.linalg.norm(proj - uv, axis=1)
         d[dataset.obs_target[o]] = np.inf
         d[~np.isfinite(d)] = np.inf
         j = int(np.argmin(d))
-        if np.isfinite(d[j]):
+        if use_table and np.isfinite(d[j]):
             with np.errstate(invalid="ignore"):
                 exact = camera.project(pc[j : j + 1], exact=True, valid_only=False)
             d[j] = np.nan_to_num(np.linalg.norm(exact[0] - uv), nan=np.inf)

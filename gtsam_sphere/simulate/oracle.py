@@ -86,8 +86,33 @@ def oracle_dataset(dataset: Dataset, lens, lens_desc: dict) -> tuple[Dataset, Mo
     return out, Model.RADIAL, (*pp, lens.f)
 
 
+def _true_pose_initialisation(ideal: Dataset, truth: dict, model: Model, fixed: tuple):
+    """The true ``cam_from_world`` of ``ideal``'s images as an :class:`Initialisation`.
+
+    The adjustment's optimum does not depend on its start: the oracles skip the
+    lens-unknown initialisation.
+    """
+    true_pose = {
+        im["id"]: (np.array(im["cam_from_world"]["R"]), np.array(im["cam_from_world"]["t"]))
+        for im in truth["images"]
+    }
+    return Initialisation(
+        ideal,
+        np.array([true_pose[i][0] for i in ideal.image_ids]),
+        np.array([true_pose[i][1] for i in ideal.image_ids]),
+        len(ideal.image_ids),
+        str(model),
+        float(fixed[2]),
+        principal_point_px=np.array(fixed[:2], float),
+    )
+
+
 def oracle_calibration(
-    sim, seed: int = 0, progress: Callable[[str], None] | None = None
+    sim,
+    seed: int = 0,
+    progress: Callable[[str], None] | None = None,
+    known_lens: bool = True,
+    known_field: bool = True,
 ) -> Calibration:
     """Adjust a simulation with its true lens held fixed (poses and targets only).
 
@@ -97,6 +122,18 @@ def oracle_calibration(
         From :func:`gtsam_sphere.simulate.simulate_room`.
     seed : int
     progress : callable(str), optional
+    known_lens : bool
+        False: the family oracle. The same ideal measurements (:func:`oracle_dataset`),
+        with the ideal model's principal point and principal distance estimated too
+        (from the true poses): an adjustment that knows the lens family and its
+        distortion exactly but not its scale and centre. The gap between the two
+        oracles is what not knowing those three numbers costs on this geometry.
+    known_field : bool
+        False: the field-blind oracle. A simulated smooth error field
+        (:class:`~gtsam_sphere.simulate.lenses.ErrorField`) stays in the measurements
+        as unmodelled error: the rest of the lens is known. Its gap to the oracle is
+        the part of the field that no correction learned from the residuals can
+        recover, because the poses (and targets) absorb it.
 
     Returns
     -------
@@ -105,16 +142,22 @@ def oracle_calibration(
         adjusted network (:func:`gtsam_sphere.analysis.evaluate.evaluate_calibration`).
     """
     dataset = parse_dataset(sim.dataset)
-    ideal, model, fixed = oracle_dataset(dataset, sim.lens, sim.truth["lens"])
+    lens = sim.lens
+    if not known_field and sim.truth["lens"].get("kind") == "error-field":
+        lens = lens.lens  # the field is always the outermost wrapper (room.py)
+    ideal, model, fixed = oracle_dataset(dataset, lens, sim.truth["lens"])
     options = CalibrationOptions(
         model=model,
         brown_terms=(),
         radial_terms=0,
-        fixed_intrinsics=fixed,
+        fixed_intrinsics=fixed if known_lens else None,
         seed=seed,
         covariance=False,
     )
-    return calibrate(ideal, options, progress)
+    if known_lens:
+        return calibrate(ideal, options, progress)
+    init = _true_pose_initialisation(ideal, sim.truth, model, fixed)
+    return calibrate(ideal, options, progress, init=init)
 
 
 def oracle_rig_calibration(
@@ -159,23 +202,9 @@ def oracle_rig_calibration(
     lens_desc = {cam["id"]: cam["lens"] for cam in sim.truth["cameras"]}
     calibs: dict[str, Calibration] = {}
     options: dict[str, CalibrationOptions] = {}
-    true_pose = {
-        im["id"]: (np.array(im["cam_from_world"]["R"]), np.array(im["cam_from_world"]["t"]))
-        for im in sim.truth["images"]
-    }
     for cam in sim.cameras:
         ideal, model, fixed = oracle_dataset(parts[cam.id], cam.lens, lens_desc[cam.id])
-        # the true poses start the adjustment (its optimum does not depend on them): no
-        # lens-unknown initialisation to run
-        init = Initialisation(
-            ideal,
-            np.array([true_pose[i][0] for i in ideal.image_ids]),
-            np.array([true_pose[i][1] for i in ideal.image_ids]),
-            len(ideal.image_ids),
-            str(model),
-            float(fixed[2]),
-            principal_point_px=np.array(fixed[:2], float),
-        )
+        init = _true_pose_initialisation(ideal, sim.truth, model, fixed)
         opts = CalibrationOptions(
             model=model,
             brown_terms=(),
