@@ -31,7 +31,6 @@ from __future__ import annotations
 import argparse
 import sys
 import tempfile
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -41,26 +40,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_lens_zoo as zoo  # noqa: E402
 
 
-def _central(lens):
-    """The innermost central lens: without the error field and the moving pupil."""
-    while hasattr(lens, "lens"):
-        lens = lens.lens
-    return lens
-
-
-def _ideal(dataset, lens, remove_field: bool):
-    """Measurements mapped onto the equidistant ideal model of the true lens (as the
-    oracle does), the error field removed or left in."""
-    from gtsam_sphere.simulate.oracle import oracle_dataset
-
-    return oracle_dataset(dataset, lens if remove_field else _central(lens), {"kind": "any"})
-
-
 def run(case, workdir: Path) -> dict:
-    """The five ratios of one case (module docstring)."""
-    from gtsam_sphere.core.camera import Model
-    from gtsam_sphere.estimation.calibrate import CalibrationOptions, calibrate
-    from gtsam_sphere.io.dataset import parse_dataset
+    """The five ratios of one case (module docstring), each an
+    :func:`~gtsam_sphere.simulate.oracle.oracle_calibration` variant but ``default``."""
     from gtsam_sphere.simulate import simulate_room, write_simulation
     from gtsam_sphere.simulate.oracle import oracle_calibration
 
@@ -74,23 +56,14 @@ def run(case, workdir: Path) -> dict:
         paths["dataset"], workdir / case.id / "calibration.json", None
     )
     row["default"] = zoo._rmse_3d(calib, sim, metric) / oracle
-    dataset = parse_dataset(sim.dataset)
-    free = CalibrationOptions(radial_terms=0, brown_terms=(), seed=case.seed, covariance=False)
     variants = {
-        "shape+xyc": (True, free),
-        "field, xyc fixed": (False, None),
-        "field+xyc": (False, free),
-        "field+xyc+knn": (False, None),
+        "shape+xyc": {"known_lens": False},
+        "field, xyc fixed": {"known_field": False},
+        "field+xyc": {"known_lens": False, "known_field": False},
+        "field+xyc+knn": {"known_lens": False, "known_field": False, "learn_correction": True},
     }
-    for name, (remove, options) in variants.items():
-        ideal, model, fixed = _ideal(dataset, sim.lens, remove)
-        if name == "field, xyc fixed":
-            options = replace(free, model=model, fixed_intrinsics=fixed)
-        elif name == "field+xyc+knn":
-            options = replace(free, model=Model.RADIAL_KNN)
-        else:
-            options = replace(options, model=model)
-        result = calibrate(ideal, options)
+    for name, knowledge in variants.items():
+        result = oracle_calibration(sim, case.seed, **knowledge)
         row[name] = zoo._rmse_3d(result, sim, metric) / oracle
     return row
 

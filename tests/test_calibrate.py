@@ -395,24 +395,31 @@ def test_a_knn_loop_that_runs_out_of_rounds_is_not_trusted():
     assert any("did not become stable" in r for r in calib.statistics["distrust"])
 
 
-@pytest.mark.parametrize("queries, path", [(0, "exact"), (10**9, "table")])
-def test_outliers_are_classified_as_with_every_target_projected_exactly(monkeypatch, queries, path):
-    """``classify_outliers`` projects each image's targets once, exactly or (when that
-    costs more than building the table) through the tabulated correction and only the
-    nearest one exactly: either way the causes, matches and distances are those of
-    projecting every target exactly for every outlier (the former rule, 17.7 s of 25 on
-    ov_plane_train)."""
+@pytest.mark.parametrize("degree", [0, 1])
+def test_outliers_are_classified_as_with_every_target_projected_exactly(degree):
+    """``classify_outliers`` projects exactly only the targets whose pixel without the
+    correction lies within the correction's bound of the match distance (degree 0: the
+    longest training correction; a local linear fit has no bound: every target): the
+    causes, matches and distances are those of projecting every target exactly for
+    every outlier (the former rule, 17.7 s of 25 on ov_plane_train), and no table is
+    built."""
     from gtsam_sphere.core.camera import SphereCamera
-    from gtsam_sphere.estimation import calibrate as calibrate_module
     from gtsam_sphere.estimation.calibrate import classify_outliers
     from gtsam_sphere.estimation.correct import KNNCorrection
 
-    monkeypatch.setattr(calibrate_module, "EXACT_QUERIES", queries)
-
     rng = np.random.default_rng(7)
     grid = rng.uniform(0, 1200, size=(600, 2))
-    field = np.column_stack([2.0 * np.sin(grid[:, 0] / 300.0), -1.5 * np.cos(grid[:, 1] / 250.0)])
-    model = KNNCorrection(random_state=0).fit(grid, field)
+    # a correction far longer than the match distances: a filter that ignored it would
+    # miss the matches
+    field = np.column_stack([20.0 * np.sin(grid[:, 0] / 300.0), -15.0 * np.cos(grid[:, 1] / 250.0)])
+    model = KNNCorrection(random_state=0, degree=degree).fit(grid, field)
+    bound = model.prediction_bound_px()
+    if degree == 0:
+        assert bound == pytest.approx(np.max(np.linalg.norm(field, axis=1)))
+        probe = np.random.default_rng(8).uniform(-200, 1400, size=(2000, 2))
+        assert np.linalg.norm(model.predict(probe), axis=1).max() <= bound + 1e-12
+    else:
+        assert bound == np.inf
     cam = SphereCamera(1200, 1000, 601.0, 498.0, 450.0, radial={"g3": -0.05}, correction=model)
     x, y = np.meshgrid(np.linspace(-1.5, 1.5, 18), np.linspace(-1.2, 1.2, 15))
     xyz = np.column_stack([x.ravel(), y.ravel(), np.full(x.size, 2.0)])  # one image, R = I
@@ -433,7 +440,7 @@ def test_outliers_are_classified_as_with_every_target_projected_exactly(monkeypa
     )
     res = uv - true_uv
     got = classify_outliers(cam, dataset, R, t, xyz, res, wrong)
-    assert (cam._table is not None) == (path == "table")
+    assert cam._table is None
     # the reference: every target projected exactly for every outlier
     every = cam.project(xyz, exact=True, valid_only=False)
     ref = {}

@@ -10,6 +10,7 @@ loop of Chow et al. 2018) is ``estimation.correct``, which re-exports these name
 from __future__ import annotations
 
 import hashlib
+import math
 import numbers
 import warnings
 from collections.abc import Callable
@@ -376,6 +377,22 @@ class KNNCorrection(RegressorMixin, BaseEstimator):
         return local_fit(
             self.uv_px_, self.corrections_px_, X, ind, dist, self.weights_, self.degree_
         )
+
+    def prediction_bound_px(self) -> float:
+        """A bound on ``|predict(uv_px)|`` (px) at any pixel.
+
+        With ``degree_ == 0`` a prediction is a weighted mean of training corrections
+        (uniform or inverse-distance weights), so no longer than the longest of them;
+        a local linear fit (``degree_ == 1``) extrapolates: ``inf``.
+
+        Returns
+        -------
+        float
+        """
+        check_is_fitted(self)
+        if self.degree_ != 0 or len(self.corrections_px_) == 0:
+            return math.inf
+        return float(np.max(np.linalg.norm(self.corrections_px_, axis=1)))
 
     def predict_without_self(self, searches: NeighbourSearches | None = None) -> np.ndarray:
         """Leave-one-out corrections at the training pixels, (N, 2) px.

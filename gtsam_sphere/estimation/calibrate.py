@@ -1402,11 +1402,6 @@ def intrinsics_sigma(problem: BundleProblem, values: gtsam.Values) -> np.ndarray
     return None if cov is None else np.sqrt(np.diag(cov))
 
 
-#: kNN queries of one exact projection (the correction's inversion), against about one
-#: per node of the tabulated correction: which of the two :func:`classify_outliers` uses
-EXACT_QUERIES = 30
-
-
 def classify_outliers(
     camera: SphereCamera,
     dataset: Dataset,
@@ -1445,33 +1440,42 @@ def classify_outliers(
     """
     out = []
     r_norm = np.linalg.norm(residuals_px, axis=1)
-    # every target's pixel in an image, once per image; only the nearest target needs the
-    # exact correction, whose inversion is ~30 kNN queries (ov_plane_train: 165 outliers
-    # in 18 images took 17.7 of the calibration's 25 s with every target projected
-    # exactly per outlier). The others go through the tabulated correction (within 0.01
-    # px RMS of it) when building the table, ~(W / 4) x (H / 4) nodes, costs less than
-    # inverting every target of those images exactly (ov_plane_train: 18 x 484 targets,
-    # table 2.1 s, exact 5.8 s); else exactly (a 2000 x 2000 room with 2 outliers in
-    # 331 targets: table 0.77 s of the 5.7 s calibration, exact 0.015 s)
-    n_images = len(np.unique(dataset.obs_image[index]))
-    use_table = n_images * len(xyz) * EXACT_QUERIES > (camera.width / 4) * (camera.height / 4)
-    projected: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # image -> (points, pixels)
+    # A target's exact pixel (the learned correction inverted, ~30 kNN queries) lies
+    # within the correction's bound of its pixel without the correction (uv = w +
+    # learned(uv)): only the targets that could match are projected exactly. Every
+    # target exactly per outlier took 17.7 of ov_plane_train's 25 s (165 outliers in 18
+    # images); the tabulated correction instead (session 12) 0.77 s of a small room's
+    # 5.7 s and 16 s of a 340 deg room's 40 s (a rough correction: a fine table).
+    bound = math.inf
+    if camera.correction is not None and hasattr(camera.correction, "prediction_bound_px"):
+        bound = camera.correction.prediction_bound_px()
+    parametric = replace(camera, correction=None)
+    # per image: camera-frame points, pixels without the correction, exact pixels and
+    # which of them are computed
+    pixels: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = {}
     for o in index[np.argsort(-r_norm[index])]:
         i = int(dataset.obs_image[o])
         uv = dataset.uv_px[o]
-        if i not in projected:
+        if i not in pixels:
             pc_i = xyz @ R[i].T + t[i]
             with np.errstate(invalid="ignore"):
-                projected[i] = pc_i, camera.project(pc_i, exact=not use_table, valid_only=False)
-        pc, proj = projected[i]
-        d = np.linalg.norm(proj - uv, axis=1)
-        d[dataset.obs_target[o]] = np.inf
-        d[~np.isfinite(d)] = np.inf
-        j = int(np.argmin(d))
-        if use_table and np.isfinite(d[j]):
+                w = parametric.project(pc_i, exact=True, valid_only=False)
+            done = np.full(len(w), camera.correction is None)
+            pixels[i] = pc_i, w, w.copy(), done
+        pc, w, exact_uv, done = pixels[i]
+        limit = min(r_norm[o] / 3.0, 10.0 + 0.01 * r_norm[o])
+        with np.errstate(invalid="ignore"):
+            near = np.linalg.norm(w - uv, axis=1) < limit + bound
+        near |= ~np.isfinite(w).all(axis=1) & math.isinf(bound)
+        near[dataset.obs_target[o]] = False
+        todo = np.flatnonzero(near & ~done)
+        if todo.size:
             with np.errstate(invalid="ignore"):
-                exact = camera.project(pc[j : j + 1], exact=True, valid_only=False)
-            d[j] = np.nan_to_num(np.linalg.norm(exact[0] - uv), nan=np.inf)
+                exact_uv[todo] = camera.project(pc[todo], exact=True, valid_only=False)
+            done[todo] = True
+        d = np.full(len(pc), np.inf)
+        d[near] = np.nan_to_num(np.linalg.norm(exact_uv[near] - uv, axis=1), nan=np.inf)
+        j = int(np.argmin(d))
         entry = {
             "image": dataset.image_ids[i],
             "target": dataset.target_ids[dataset.obs_target[o]],

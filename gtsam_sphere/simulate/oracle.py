@@ -113,6 +113,7 @@ def oracle_calibration(
     progress: Callable[[str], None] | None = None,
     known_lens: bool = True,
     known_field: bool = True,
+    learn_correction: bool = False,
 ) -> Calibration:
     """Adjust a simulation with its true lens held fixed (poses and targets only).
 
@@ -134,6 +135,10 @@ def oracle_calibration(
         as unmodelled error: the rest of the lens is known. Its gap to the oracle is
         the part of the field that no correction learned from the residuals can
         recover, because the poses (and targets) absorb it.
+    learn_correction : bool
+        With ``known_field=False``: the ideal model plus the kNN correction rounds
+        (``radial+knn`` with no radial terms): whether the correction gets the field
+        back once the radial model is exact.
 
     Returns
     -------
@@ -146,8 +151,10 @@ def oracle_calibration(
     if not known_field and sim.truth["lens"].get("kind") == "error-field":
         lens = lens.lens  # the field is always the outermost wrapper (room.py)
     ideal, model, fixed = oracle_dataset(dataset, lens, sim.truth["lens"])
+    if learn_correction and model is not Model.RADIAL:
+        raise ValueError(f"learn_correction needs the radial ideal model, not {model}")
     options = CalibrationOptions(
-        model=model,
+        model=Model.RADIAL_KNN if learn_correction else model,
         brown_terms=(),
         radial_terms=0,
         fixed_intrinsics=fixed if known_lens else None,
