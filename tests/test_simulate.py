@@ -435,6 +435,7 @@ def test_lens_zoo_case_list_builds(monkeypatch):
     assert 6 <= len(quick) <= 10 and {c.scene for c in quick} == {"room", "board", "object3d"}
 
 
+@pytest.mark.slow  # three end-to-end adjustments
 def test_oracle_references_know_less_and_do_worse():
     """The zoo's three references on one board with a 2 px error field: the oracle
     (lens and field known), the family oracle (principal point and distance estimated)
