@@ -1496,9 +1496,11 @@ def classify_outliers(
             pixels[i] = pc_i, w, w.copy(), done
         pc, w, exact_uv, done = pixels[i]
         limit = min(r_norm[o] / 3.0, 10.0 + 0.01 * r_norm[o])
-        with np.errstate(invalid="ignore"):
-            near = np.linalg.norm(w - uv, axis=1) < limit + bound
-        near |= ~np.isfinite(w).all(axis=1) & math.isinf(bound)
+        if math.isinf(bound):  # no bound: every target is a candidate
+            near = np.ones(len(w), bool)
+        else:
+            with np.errstate(invalid="ignore"):
+                near = np.linalg.norm(w - uv, axis=1) < limit + bound
         near[dataset.obs_target[o]] = False
         todo = np.flatnonzero(near & ~done)
         if todo.size:
