@@ -87,7 +87,9 @@ def test_warp_of_a_340_deg_stereographic_lens_needs_the_mapping_terms():
         WARP_GAIN,
         WARP_GRID,
         WARP_TERMS_GATE,
+        _terms_gain,
         _warp_scores,
+        _warp_winner,
     )
 
     rng = np.random.default_rng(4)
@@ -100,9 +102,54 @@ def test_warp_of_a_340_deg_stereographic_lens_needs_the_mapping_terms():
     assert one.min() >= WARP_GAIN * one[now]
     assert one.min() > WARP_TERMS_GATE * 0.3  # one term cannot follow it: the gate opens
     six = _warp_scores(r, alpha, warps, 6)
-    best = int(np.argmin(six))
-    assert six[best] < WARP_GAIN * six[now]
-    assert warps[best] > 0.0
+    choice = _warp_winner(six, warps, 0.0, _terms_gain(alpha.size))
+    assert choice is not None and choice[0] > 0.0
+
+
+def test_terms_gain_is_two_standard_errors_of_a_mad():
+    """The six-term scoring's gain: 1 - 2 SE of a MAD sigma on the rows, and that SE
+    (``MAD_RELATIVE_SE / sqrt(n)``) is what MAD sigmas of normal samples scatter by."""
+    from gtsam_sphere.core.robust import MAD_RELATIVE_SE, MAD_TO_SIGMA
+    from gtsam_sphere.estimation.calibrate import WARP_TERMS_ROWS, _terms_gain
+
+    rng = np.random.default_rng(0)
+    n = 500
+    sigmas = MAD_TO_SIGMA * np.median(np.abs(rng.normal(size=(4000, n))), axis=1)
+    assert np.std(sigmas) * np.sqrt(n) == pytest.approx(MAD_RELATIVE_SE, rel=0.05)
+    assert _terms_gain(WARP_TERMS_ROWS) == pytest.approx(0.948, abs=1e-3)
+    assert _terms_gain(100) < _terms_gain(WARP_TERMS_ROWS) < 1.0
+
+
+@pytest.mark.parametrize(
+    ("lens", "alpha_max_deg"),
+    [
+        ("kannala-brandt", 75.0),  # a KB polynomial: w = 0 with terms is exact
+        ("equisolid", 140.0),
+        ("stereographic", 150.0),  # 300 deg: the gate opens (one term ~30 sigma)
+    ],
+)
+def test_six_term_scoring_keeps_a_warp_its_terms_already_follow(lens, alpha_max_deg):
+    """Where ``w = 0`` and six terms follow the mapping to the noise, no warp of the
+    grid wins the six-term scoring: its fits all reach the noise (0.98-1.00 of
+    ``w = 0``'s residual, measured over six seeds), above the gain of 2,000 rows."""
+    from gtsam_sphere.estimation.calibrate import (
+        WARP_GRID,
+        _terms_gain,
+        _warp_scores,
+        _warp_winner,
+    )
+
+    rng = np.random.default_rng(1)
+    alpha = np.arccos(rng.uniform(np.cos(np.radians(alpha_max_deg)), 1.0, 2000))
+    radius = {
+        "kannala-brandt": lambda a: 300.0 * (a + 0.05 * a**3 - 0.01 * a**5),
+        "equisolid": lambda a: 300.0 * np.sin(a / 2.0),
+        "stereographic": lambda a: 120.0 * np.tan(a / 2.0),
+    }[lens]
+    r = radius(alpha) + rng.normal(0.0, 0.3, alpha.shape)
+    warps = list(WARP_GRID)
+    six = _warp_scores(r, alpha, warps, 6)
+    assert _warp_winner(six, warps, 0.0, _terms_gain(alpha.size)) is None
 
 
 @pytest.mark.parametrize(

@@ -21,6 +21,7 @@ __all__ = [
     "MEDIAN_NORM_2D",
     "MEDIAN_NORM_3D",
     "MAD_TO_SIGMA",
+    "MAD_RELATIVE_SE",
     "MIN_REDUNDANCY",
     "Loss",
     "mad_sigma",
@@ -36,6 +37,10 @@ MEDIAN_NORM_2D = float(np.sqrt(2.0 * np.log(2.0)))
 MEDIAN_NORM_3D = 1.5382
 #: the median absolute deviation of a 1-D normal is this fraction of its sigma, inverted
 MAD_TO_SIGMA = 1.4826
+#: relative standard error of that sigma on ``n`` normal values, times ``sqrt(n)``: the
+#: MAD's efficiency is 37 % of the standard deviation's, whose relative error is
+#: ``0.707 / sqrt(n)``; ``0.707 / sqrt(0.37) = 1.166``
+MAD_RELATIVE_SE = 1.166
 
 
 class Loss(StrEnum):

@@ -26,7 +26,7 @@ from ..core.camera import (
     radial_warp,
 )
 from ..core.geometry import fit_similarity, incidence_deg
-from ..core.robust import MAD_TO_SIGMA, Loss, robust_sigma_px, robust_weight
+from ..core.robust import MAD_RELATIVE_SE, MAD_TO_SIGMA, Loss, robust_sigma_px, robust_weight
 from ..io.calibration import Calibration
 from ..io.dataset import Dataset
 from .diagnose import check_geometry, raise_if_degenerate
@@ -1174,16 +1174,29 @@ def _better_warp(
             by_alpha = rows[np.argsort(alpha[rows], kind="stable")]
             rows = by_alpha[np.linspace(0, len(rows) - 1, WARP_TERMS_ROWS).astype(int)]
         scores = _warp_scores(r[rows], alpha[rows], warps, n_terms)
-        choice = _warp_winner(scores, warps, current)
+        choice = _warp_winner(scores, warps, current, _terms_gain(len(rows)))
     return None if choice is None else (*choice, keep)
 
 
-def _warp_winner(scores: np.ndarray, warps: list, current: float):
+def _terms_gain(n_rows: int) -> float:
+    """:data:`WARP_GAIN` of the scoring with the mapping's terms on ``n_rows`` rows: a
+    warp wins when its residual is two standard errors of a MAD below the current
+    one's (0.948 on 2,000 rows).
+
+    Those fits reach the noise, which both residuals share, so a real gain in shape is a
+    small fraction of the residual: a 340 deg stereographic room (seed 8 case 27 of the
+    zoo) scored 0.304 px against 0.331 px for ``w = 0`` (0.92); with the one-term gain
+    0.8 it kept ``w = 0``, 1.10x the oracle's 3D error; with this gain 0.76x.
+    """
+    return 1.0 - 2.0 * MAD_RELATIVE_SE / math.sqrt(max(n_rows, 1))
+
+
+def _warp_winner(scores: np.ndarray, warps: list, current: float, gain: float = WARP_GAIN):
     """``(w, best_px, current_px)`` of the best-scoring warp when it scores below
-    :data:`WARP_GAIN` times the ``current`` one, else None."""
+    ``gain`` times the ``current`` one, else None."""
     best = int(np.argmin(scores))
     now = float(scores[warps.index(current)])
-    if warps[best] == current or scores[best] >= WARP_GAIN * now:
+    if warps[best] == current or scores[best] >= gain * now:
         return None
     return float(warps[best]), float(scores[best]), now
 
