@@ -4,7 +4,7 @@ Under pytest-xdist (``-n auto``) each worker is its own process: on a 2-core mac
 workers whose OpenBLAS and OpenCV each start a thread per core run four busy threads on
 two cores. The matrices of these tests are small, so the extra threads only contend:
 measured on the 2-core machine, ``pytest -m "not slow" -n auto`` took 95 s with the
-libraries' default threads and 81 s with one thread per worker (same tests, same
+libraries' default threads and 79 s with one thread per worker (same tests, same
 results). A serial run (no xdist) keeps the libraries' defaults.
 """
 
