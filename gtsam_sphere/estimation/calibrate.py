@@ -22,6 +22,7 @@ from ..core.camera import (
     Model,
     SphereCamera,
     parse_brown_terms,
+    radial_g,
     radial_terms,
     radial_warp,
 )
@@ -1123,8 +1124,7 @@ def _warp_scores(r_px: np.ndarray, alpha: np.ndarray, warps, n_terms: int = 1) -
     for w in warps:
         beta = alpha if w == 0.0 else math.exp(w) * radial_warp(alpha, w)
         cg = _fit_radial(r_px, beta, n_terms)
-        t = beta / ALPHA0_RAD
-        pred = cg[0] * (beta + ALPHA0_RAD * sum(g * t ** (2 * i + 3) for i, g in enumerate(cg[1:])))
+        pred = cg[0] * radial_g(beta, cg[1:])
         scores.append(MAD_TO_SIGMA * float(np.median(np.abs(pred - r_px))))
     return np.asarray(scores)
 
