@@ -381,6 +381,12 @@ def run_case(case: Case, workdir: Path, verbose: bool = False) -> dict:
         hyp = next((ln for ln in lines if ln.startswith("initial lens:")), "")
         m = re.search(r"\(family\s*([^,]+),", hyp)
         row["hypothesis"] = m.group(1).strip() if m else "?"
+        # kNN rounds run (round 0 is the uncorrected adjustment): how long the loop takes
+        # to settle, and whether it did
+        row["knn_rounds"] = sum(
+            1 for ln in lines if ln.startswith("kNN round ") and not ln.startswith("kNN round 0")
+        )
+        row["knn_stable"] = any(ln.startswith("kNN loop stable") for ln in lines)
         cam, lens = calib.camera, sim.lens
         row["pp_error_px"] = float(math.hypot(cam.xp - lens.cx, cam.yp - lens.cy))
         c_true = _axis_scale_px(lens)
