@@ -5,12 +5,10 @@ from __future__ import annotations
 import numpy as np
 
 from gtsam_sphere.core.least_squares import (
-    RELATIVE_TOLERANCE,
     Damping,
     LMStatus,
     levenberg_marquardt,
     levenberg_marquardt_batch,
-    relative_decrease_below,
 )
 
 
@@ -165,17 +163,3 @@ def test_singular_systems_of_a_batch_are_found_one_by_one():
     delta, singular = _solve_damped(H, g, np.array([0.0, 1.0]), np.ones((2, 2)))
     assert not singular.any()
     np.testing.assert_allclose((H[1] + np.eye(2)) @ delta[1], -g[1])
-
-
-def test_relative_decrease_rule_is_the_optimisers_and_stops_per_problem():
-    """``relative_decrease_below``: converged where an accepted step lowered the cost by
-    at most ``tol`` of it (per problem of a batch; a cost already 0 is converged), and
-    the graph optimiser's default tolerance is the same constant."""
-    from gtsam_sphere.estimation.optimize import OptimizerOptions
-
-    assert OptimizerOptions().relative_tolerance == RELATIVE_TOLERANCE == 1e-6
-    rule = relative_decrease_below()
-    before = np.array([1.0, 1.0, 2.0, 0.0])
-    after = np.array([1.0 - 0.5e-6, 1.0 - 2e-6, 1.0, 0.0])
-    np.testing.assert_array_equal(rule(before, after, None), [True, False, False, True])
-    assert relative_decrease_below(0.6)(np.array([2.0]), np.array([1.0]), None).all()

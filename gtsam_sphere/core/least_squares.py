@@ -32,39 +32,9 @@ __all__ = [
     "LMBatchResult",
     "LMResult",
     "LMStatus",
-    "RELATIVE_TOLERANCE",
     "levenberg_marquardt",
     "levenberg_marquardt_batch",
-    "relative_decrease_below",
 ]
-
-#: the package's convergence rule: an accepted step that lowers the cost by less than
-#: this fraction of it ends the run (Ceres' default ``function_tolerance``; the graph
-#: optimiser's ``OptimizerOptions.relative_tolerance`` and the pose refinement of the
-#: lens initialisation's RANSAC, :mod:`~gtsam_sphere.core.p3p`)
-RELATIVE_TOLERANCE = 1e-6
-
-
-def relative_decrease_below(tol: float = RELATIVE_TOLERANCE):
-    """``converged`` test of :func:`levenberg_marquardt_batch`: an accepted step lowered
-    the cost by at most ``tol`` times the cost before it.
-
-    Parameters
-    ----------
-    tol : float
-        Relative cost decrease (dimensionless).
-
-    Returns
-    -------
-    callable
-        ``converged(cost_before (B,), cost_after (B,), delta (B, P)) -> (B,) bool``.
-    """
-
-    def converged(cost_before, cost_after, _delta):
-        before = np.asarray(cost_before, float)
-        return before - np.asarray(cost_after, float) <= tol * np.abs(before)
-
-    return converged
 
 
 class LMStatus(StrEnum):

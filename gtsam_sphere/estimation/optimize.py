@@ -26,7 +26,7 @@ import gtsam
 import numpy as np
 
 from ..core._compat import StrEnum
-from ..core.least_squares import RELATIVE_TOLERANCE, LMStatus
+from ..core.least_squares import LMStatus
 from .engine import TrustedPass
 
 
@@ -57,7 +57,7 @@ class OptimizerOptions:
 
     kind: OptimizerKind = OptimizerKind.LM
     max_iterations: int = 100
-    relative_tolerance: float = RELATIVE_TOLERANCE
+    relative_tolerance: float = 1e-6
     absolute_tolerance: float = 1e-9
 
 
