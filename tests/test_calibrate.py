@@ -379,17 +379,22 @@ def test_a_final_sigma_far_above_the_first_adjustments_is_not_trusted(monkeypatc
     assert any("times the first adjustment's" in r for r in calib.statistics["distrust"])
 
 
-def test_a_knn_loop_that_runs_out_of_rounds_is_not_trusted():
-    """The loop needs two rounds to see the CV score stable; with one round it runs out,
-    says so, keeps its best round, and the calibration is not trusted."""
+def _small_radial_knn_run(knn: dict):
+    """A small 150 deg equidistant room calibrated with these kNN options: (calib, lines)."""
     sim = simulate_room(
         SimulationOptions(
             lens="equidistant", fov_deg=150.0, n_images=8, n_targets=80, noise_px=0.3, seed=5
         )
     )
     lines = []
-    options = CalibrationOptions(covariance=False, knn={"max_rounds": 1})
-    calib = calibrate(parse_dataset(sim.dataset), options, lines.append)
+    options = CalibrationOptions(covariance=False, knn=knn)
+    return calibrate(parse_dataset(sim.dataset), options, lines.append), lines
+
+
+def test_a_knn_loop_that_runs_out_of_rounds_is_not_trusted():
+    """The loop needs two rounds to see the CV score stable; with one round it runs out,
+    says so, keeps its best round, and the calibration is not trusted."""
+    calib, lines = _small_radial_knn_run({"max_rounds": 1})
     assert any(ln.startswith("kNN loop not stable after 1 rounds") for ln in lines), lines
     assert not calib.statistics["trusted"]
     assert any("did not become stable" in r for r in calib.statistics["distrust"])
@@ -402,14 +407,7 @@ def test_a_parametric_knn_loop_stops_at_its_own_round_limit():
     from gtsam_sphere.estimation.correct import KNN_MAX_ROUNDS, KNN_MAX_ROUNDS_PARAMETRIC
 
     assert KNN_MAX_ROUNDS_PARAMETRIC < KNN_MAX_ROUNDS
-    sim = simulate_room(
-        SimulationOptions(
-            lens="equidistant", fov_deg=150.0, n_images=8, n_targets=80, noise_px=0.3, seed=5
-        )
-    )
-    lines = []
-    options = CalibrationOptions(covariance=False, knn={"tolerance": 0.0})
-    calib = calibrate(parse_dataset(sim.dataset), options, lines.append)
+    calib, lines = _small_radial_knn_run({"tolerance": 0.0})
     rounds = [ln for ln in lines if ln.startswith("kNN round ") and "round 0" not in ln]
     assert len(rounds) == KNN_MAX_ROUNDS_PARAMETRIC, lines
     stop = f"kNN loop not stable after {KNN_MAX_ROUNDS_PARAMETRIC} rounds"
