@@ -117,6 +117,9 @@ _MAX_SCORED = 160  # observations per image when ranking hypotheses
 #: tried with the warps :data:`_OTHER_WARPS` too (:func:`_other_warps`)
 _POOR_INLIER_FRACTION = 0.8
 _OTHER_WARPS = (-1.6, -1.0, -0.5, 0.0, 0.5, 1.0)
+#: ... but only when it explains at least this fraction: below it the hypothesis is
+#: wrong altogether, not its shape (data no lens explains must still fail fast)
+_RESCUE_INLIER_FRACTION = 0.3
 #: a refit whose MSAC cost (units of thr^2) is at most this per scored observation (RMS
 #: error ~0.2 thr and next to no outlier) explains the data: the second hypothesis is
 #: not refitted (a refit that costs 0.7-1.6 s and lands on the same polynomial)
@@ -1111,7 +1114,12 @@ def initialize_poses(
         say(f"chosen lens hypothesis: {lens.describe()}")
         posed = _pose_all(problem, eligible, lens, thr, image_seeds, min_inliers)
         posed = _final_refit(problem, eligible, lens, thr, image_seeds, min_inliers, posed, say)
-        poor = posed[3].sum() < _POOR_INLIER_FRACTION * n_eligible_obs
+        n_consistent = posed[3].sum()
+        poor = (
+            _RESCUE_INLIER_FRACTION * n_eligible_obs
+            <= n_consistent
+            < _POOR_INLIER_FRACTION * n_eligible_obs
+        )
         if poor and not posed[5].folded:  # no odd polynomial follows a fold
             say(
                 f"{int(posed[3].sum())} of {n_eligible_obs} observations consistent: "
@@ -1307,6 +1315,8 @@ def _other_warps(problem, images, thr, seeds, min_inliers, posed, say):
     for i, rows in enumerate(problem.obs_of_image):
         owner[rows] = i
     idx = np.flatnonzero(mask)
+    if idx.size < 4 * _N_POLY:
+        return posed
     p = np.einsum("nij,nj->ni", rot[owner[idx]], problem.points[idx]) + trans[owner[idx]]
     alpha_seen = np.arctan2(np.hypot(p[:, 0], p[:, 1]), p[:, 2])
     a_top = min(1.1 * float(np.percentile(alpha_seen, 99.5)), lens.alpha_max_rad)
