@@ -500,6 +500,7 @@ class _Problem:
             else idx[np.linspace(0, idx.size - 1, max_per_image).round().astype(int)]
             for idx in self.obs_of_image
         ]
+        self.obs_image = obs_image
         self.all_observations = False
 
     def errors_px(self, idx, hyp: LensHypothesis, R, t) -> np.ndarray:
@@ -715,6 +716,14 @@ def _radial_basis(alpha: np.ndarray) -> np.ndarray:
     )
 
 
+def _poly_in_warp(alpha: np.ndarray, r_px: np.ndarray, warp_w: float) -> np.ndarray:
+    """(K,) least-squares coefficients of the refit basis in the warp ``warp_w`` (its
+    variable ``radial_warp(alpha, warp_w)``) for the radii ``r_px`` (M,) px at the
+    incidences ``alpha`` (M,) rad."""
+    beta = alpha if warp_w == 0.0 else radial_warp(alpha, warp_w)
+    return np.linalg.lstsq(_radial_basis(beta), r_px, rcond=None)[0]
+
+
 def _hypothesis_from_poly(b: np.ndarray, pp: np.ndarray, alpha_obs: np.ndarray, warp_w: float):
     """The ``"fitted"`` hypothesis of ``r = basis(beta(alpha)) @ b`` (None when unusable).
 
@@ -773,7 +782,7 @@ def _joint_refine(problem, images, hyp, rot, trans, mask, thr_px):
     ok = np.isfinite(r_grid)
     if ok.sum() < _N_POLY + 2:
         return None
-    b0 = np.linalg.lstsq(_radial_basis(hyp.beta(grid[ok])), r_grid[ok], rcond=None)[0]
+    b0 = _poly_in_warp(grid[ok], r_grid[ok], hyp.warp_w)
     n_cam = len(posed)
     x0 = np.concatenate([hyp.principal_point_px, b0, np.zeros(6 * n_cam)])
 
@@ -1122,7 +1131,7 @@ def initialize_poses(
         )
         if poor and not posed[5].folded:  # no odd polynomial follows a fold
             say(
-                f"{int(posed[3].sum())} of {n_eligible_obs} observations consistent: "
+                f"{int(n_consistent)} of {n_eligible_obs} observations consistent: "
                 "trying the lens with other warps"
             )
             posed = _other_warps(problem, eligible, thr, image_seeds, min_inliers, posed, say)
@@ -1311,13 +1320,11 @@ def _other_warps(problem, images, thr, seeds, min_inliers, posed, say):
     the calibration is trusted at 0.27x in 13 s.
     """
     rot, trans, mask, lens = posed[0], posed[1], posed[3], posed[5]
-    owner = np.empty(problem.uv.shape[0], int)
-    for i, rows in enumerate(problem.obs_of_image):
-        owner[rows] = i
     idx = np.flatnonzero(mask)
     if idx.size < 4 * _N_POLY:
         return posed
-    p = np.einsum("nij,nj->ni", rot[owner[idx]], problem.points[idx]) + trans[owner[idx]]
+    img = problem.obs_image[idx]
+    p = np.einsum("nij,nj->ni", rot[img], problem.points[idx]) + trans[img]
     alpha_seen = np.arctan2(np.hypot(p[:, 0], p[:, 1]), p[:, 2])
     a_top = min(1.1 * float(np.percentile(alpha_seen, 99.5)), lens.alpha_max_rad)
     grid = np.linspace(0.0, a_top, 200)[1:]
@@ -1329,8 +1336,7 @@ def _other_warps(problem, images, thr, seeds, min_inliers, posed, say):
     for w in _OTHER_WARPS:
         if lens.mapping == "fitted" and abs(w - lens.warp_w) < 0.25:
             continue  # its own warp: the final refit has been there
-        beta = grid if w == 0.0 else radial_warp(grid, w)
-        b = np.linalg.lstsq(_radial_basis(beta[usable]), r[usable], rcond=None)[0]
+        b = _poly_in_warp(grid[usable], r[usable], w)
         hyp = _hypothesis_from_poly(b, lens.principal_point_px, alpha_seen, w)
         if hyp is None:
             continue
