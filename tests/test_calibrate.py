@@ -400,21 +400,6 @@ def test_a_knn_loop_that_runs_out_of_rounds_is_not_trusted():
     assert any("did not become stable" in r for r in calib.statistics["distrust"])
 
 
-def test_a_parametric_knn_loop_stops_at_its_own_round_limit():
-    """On top of a radial model the loop runs at most ``KNN_MAX_ROUNDS_PARAMETRIC``
-    rounds (a loop that never settles, here with a tolerance of 0, stops there and is
-    not trusted), not the sphere mapping's ``KNN_MAX_ROUNDS``."""
-    from gtsam_sphere.estimation.correct import KNN_MAX_ROUNDS, KNN_MAX_ROUNDS_PARAMETRIC
-
-    assert KNN_MAX_ROUNDS_PARAMETRIC < KNN_MAX_ROUNDS
-    calib, lines = _small_radial_knn_run({"tolerance": 0.0})
-    rounds = [ln for ln in lines if ln.startswith("kNN round ") and "round 0" not in ln]
-    assert len(rounds) == KNN_MAX_ROUNDS_PARAMETRIC, lines
-    stop = f"kNN loop not stable after {KNN_MAX_ROUNDS_PARAMETRIC} rounds"
-    assert any(ln.startswith(stop) for ln in lines), lines
-    assert not calib.statistics["trusted"]
-
-
 @pytest.mark.parametrize("degree", [0, 1])
 def test_outliers_are_classified_as_with_every_target_projected_exactly(degree):
     """``classify_outliers`` projects exactly only the targets whose pixel without the

@@ -137,17 +137,6 @@ def train_correction(
     return model, corrections, train
 
 
-#: kNN rounds at most with the pure sphere mapping (``knn["max_rounds"]``)
-KNN_MAX_ROUNDS = 25
-#: ... and on top of a parametric (radial or Brown) lens model, whose field is small:
-#: over the 732 cases of the lens zoo's seeds 0-9, 13 and 14 (session 15, at 16cb0fc) the loop of
-#: every trusted calibration settled in 2-5 rounds (701 in 2). A loop still moving
-#: after 8 is learning the misfit of a wrong geometry, which more rounds do not cure:
-#: seed 4 case 05 (a 150 deg pinhole posed far from its principal point) spent 25
-#: rounds and 125 s of its 190 s there before it was reported not trusted
-KNN_MAX_ROUNDS_PARAMETRIC = 8
-
-
 def grey_box_loop(problem, adj, optimizer, options, say: Callable[[str], None], adjust):
     """Alternate kNN training and adjustment until both are stable.
 
@@ -166,11 +155,11 @@ def grey_box_loop(problem, adj, optimizer, options, say: Callable[[str], None], 
     Stops when the RMS residual (of the training set of the round, in the
     previous and the new adjustment) and the CV score both change by less
     than ``knn["tolerance"]`` (relative, default 2%) between rounds, or after
-    ``knn["max_rounds"]`` (default :data:`KNN_MAX_ROUNDS` = 25 with the sphere mapping,
-    whose field is hundreds of pixels and whose poses and ``c`` give up what they
-    absorbed in the first adjustment over 10-20 rounds;
-    :data:`KNN_MAX_ROUNDS_PARAMETRIC` = 8 on top of a radial or Brown model, whose small
-    field settles in 2-5 rounds). The round with the lowest RMS (of the
+    ``knn["max_rounds"]`` (default 25: with the sphere mapping the field
+    is hundreds of pixels and the poses and ``c`` give up what they absorbed
+    in the first adjustment over 10-20 rounds; a limit of 8 on top of a radial or
+    Brown model, tried in session 15, left the narrow pinhole of a mixed rig not
+    trusted). The round with the lowest RMS (of the
     observations within 5 sigma: blunders cannot steer it) is kept.
 
     ``adjust`` is :func:`gtsam_sphere.estimation.calibrate.adjust` (passed in by the
@@ -193,7 +182,7 @@ def grey_box_loop(problem, adj, optimizer, options, say: Callable[[str], None], 
     # 0.262 px plain, 0.271 px with the CV's choice), so it stays the paper's plain kNN
     parametric = problem.radial_names is not None or bool(problem.brown_names)
     cfg = {
-        "max_rounds": KNN_MAX_ROUNDS_PARAMETRIC if parametric else KNN_MAX_ROUNDS,
+        "max_rounds": 25,
         "tolerance": 0.02,
         "degree": 0 if parametric else None,
         "train": "consistent",
