@@ -276,3 +276,48 @@ def test_msac_costs_equal_the_arccos_of_every_pair_to_the_bit():
     got = _msac_costs(cosang, thr, obs)
     assert got.shape == (n_p, n_h)
     np.testing.assert_array_equal(got, expected)
+
+
+def test_closed_form_quartic_roots_match_the_companion_eigenvalues():
+    """Ferrari's roots (``_quartic_roots``) against the eigenvalues of the companion
+    matrices: random quartics with 0, 2 and 4 real roots, scaled, plus the rows the
+    closed form hands over (biquadratic, degenerate, vanishing leading term)."""
+    from gtsam_sphere.core.p3p import _quartic_roots, _quartic_roots_eig
+
+    rng = np.random.default_rng(3)
+    n = 3000
+    real = rng.normal(scale=2.0, size=(n, 4))
+    pair = rng.normal(size=(n, 2)) + 1j * rng.uniform(0.05, 2.0, size=(n, 2))
+    kind = rng.integers(0, 3, size=n)  # 4, 2 or 0 real roots
+    z = np.where(
+        (kind == 0)[:, None],
+        real.astype(complex),
+        np.where(
+            (kind == 1)[:, None],
+            np.column_stack([real[:, :2], pair[:, 0], np.conj(pair[:, 0])]),
+            np.column_stack([pair[:, 0], np.conj(pair[:, 0]), pair[:, 1], np.conj(pair[:, 1])]),
+        ),
+    )
+    coef = np.array([np.poly(r)[::-1].real for r in z]) * rng.uniform(0.1, 10.0, size=(n, 1))
+    extra = np.array(
+        [
+            [4.0, 0.0, -5.0, 0.0, 1.0],  # x^4 - 5x^2 + 4: q = 0, split by the eigenvalues
+            [0.0, 0.0, 0.0, 0.0, 0.0],  # degenerate: NaN
+            [1.0, 2.0, 3.0, 4.0, 0.0],  # a cubic
+            [0.0, 0.0, 1.0, -2.0, 1.0],  # double roots 0 and 1
+        ]
+    )
+    coef = np.vstack([coef, extra])
+    got, want = _quartic_roots(coef), _quartic_roots_eig(coef)
+    assert got.shape == want.shape == (n + 4, 4)
+    assert np.all(np.isnan(got[n + 1])) and np.all(np.isnan(want[n + 1]))
+    for g, w in zip(got[np.arange(n + 4) != n + 1], want[np.arange(n + 4) != n + 1]):
+        g, w = g[np.isfinite(g)], w[np.isfinite(w)]
+        assert g.size == w.size
+        # every root of one set has a partner in the other
+        d = np.abs(g[:, None] - w[None, :]) / (1.0 + np.abs(w[None, :]))
+        assert d.min(axis=1).max() < 1e-6 and d.min(axis=0).max() < 1e-6, (g, w)
+    real_got = np.abs(got.imag) <= 1e-4 * (1.0 + np.abs(got.real))
+    real_want = np.abs(want.imag) <= 1e-4 * (1.0 + np.abs(want.real))
+    assert np.array_equal(real_got.sum(axis=1), real_want.sum(axis=1))
+    assert np.array_equal(np.sort(real_got.sum(axis=1)[:n]), np.sort(4 - 2 * kind))

