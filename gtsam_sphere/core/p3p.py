@@ -20,7 +20,8 @@ both quadratic in ``u`` with the same leading coefficient ``b^2``::
     A(u, v) = b^2 u^2 - 2 b^2 cos_a v u + (b^2 - a^2) v^2 + 2 a^2 cos_b v - a^2 = 0
     B(u, v) = b^2 u^2 - 2 b^2 cos_c u   - c^2 v^2 + 2 c^2 cos_b v + b^2 - c^2 = 0
 
-Their resultant in ``u`` is a quartic in ``v``; ``A - B`` is linear in ``u`` and gives ``u``
+Their resultant in ``u`` is a quartic in ``v``, solved in closed form (Ferrari's
+resolvent cubic, :func:`_quartic_roots`); ``A - B`` is linear in ``u`` and gives ``u``
 from each real root. The distances are polished by Newton's method on the three original
 equations, and ``R, t`` follow from aligning the camera-frame triangle ``s_i f_i`` with
 the world triangle (their orthonormal edge/normal frames, exact for congruent
