@@ -253,6 +253,52 @@ def test_an_early_fold_with_an_untrusted_sphere_model_finishes_the_radial_run(mo
     assert any("not trusted: the radial+knn model after all" in ln for ln in lines)
 
 
+def _retry_branch(monkeypatch, alternative_trusted: bool):
+    """:func:`calibrate` with ``_calibrate_once`` replaced: the first run is not trusted
+    and its initialisation has two alternative lenses; the second run is (not) trusted."""
+    import gtsam_sphere.estimation.calibrate as cal_mod
+
+    alts = [
+        types.SimpleNamespace(warp_w=-1.0, inlier_mask=np.ones(90, bool), alternatives=[]),
+        types.SimpleNamespace(warp_w=0.5, inlier_mask=np.ones(80, bool), alternatives=[]),
+    ]
+    first_init = types.SimpleNamespace(
+        warp_w=0.0, inlier_mask=np.r_[np.ones(60, bool), np.zeros(40, bool)], alternatives=alts
+    )
+    calls, lines = [], []
+
+    def fake_once(dataset, options, progress, init_in=None, fold_probe=False):
+        calls.append(init_in)
+        trusted = alternative_trusted if init_in is not None else False
+        distrust = [] if trusted else ["the kNN loop did not settle"]
+        calib = types.SimpleNamespace(
+            model="radial+knn",
+            statistics={"trusted": trusted, "distrust": distrust, "run": len(calls)},
+        )
+        return calib, (first_init if init_in is None else init_in)
+
+    monkeypatch.setattr(cal_mod, "_calibrate_once", fake_once)
+    monkeypatch.setattr(cal_mod, "_folds_like_a_sphere", lambda _calib: False)
+    calib = calibrate(object(), CalibrationOptions(), lines.append)
+    return calib, calls, lines, alts
+
+
+def test_an_untrusted_result_is_calibrated_again_from_the_next_initial_lens(monkeypatch):
+    calib, calls, lines, alts = _retry_branch(monkeypatch, alternative_trusted=True)
+    assert calls == [None, alts[0]]  # once, then from the first alternative only
+    assert calib.statistics["run"] == 2 and calib.statistics["trusted"]
+    assert calib.statistics["initial_lens_fallback"].startswith("warp w = 0 -> -1")
+    assert any("40 observations inconsistent" in ln and "w = -1.0" in ln for ln in lines)
+
+
+def test_an_untrusted_alternative_keeps_the_first_result(monkeypatch):
+    calib, calls, lines, alts = _retry_branch(monkeypatch, alternative_trusted=False)
+    assert calls == [None, alts[0]]
+    assert calib.statistics["run"] == 1 and not calib.statistics["trusted"]
+    assert "initial_lens_fallback" not in calib.statistics
+    assert any("not trusted from the alternative either" in ln for ln in lines)
+
+
 def test_the_fold_probe_runs_between_the_first_adjustments_stages(monkeypatch):
     """``adjust``'s ``after_stage`` hook carries the fold probe: a mapping found folding
     after the first stage stops the radial run there (the sphere model follows); the

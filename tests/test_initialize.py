@@ -609,9 +609,16 @@ def test_another_warp_replaces_the_lens_only_with_a_clear_gain(monkeypatch):
     lines = []
     margin = int(np.ceil(ini._OTHER_WARP_GAIN * n_obs))
     gains = {w: margin - 1 for w in ini._OTHER_WARPS}
-    kept = ini._other_warps(problem, np.arange(10), 4.0, np.arange(10), 6, posed, lines.append)
+    kept, others = ini._other_warps(
+        problem, np.arange(10), 4.0, np.arange(10), 6, posed, lines.append
+    )
     assert kept is posed, lines
     assert "keeping the lens" in lines[-1]
+    # the other warps are the alternatives, most consistent first
+    assert [round(o[5].warp_w, 1) for o in others] == list(ini._OTHER_WARPS)
     gains[-1.0] = margin
-    swapped = ini._other_warps(problem, np.arange(10), 4.0, np.arange(10), 6, posed, lines.append)
+    swapped, others = ini._other_warps(
+        problem, np.arange(10), 4.0, np.arange(10), 6, posed, lines.append
+    )
     assert swapped[5].warp_w == pytest.approx(-1.0) and swapped[3].sum() == n_kept + margin
+    assert others[0] is posed and all(o is not swapped for o in others)

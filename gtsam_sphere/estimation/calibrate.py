@@ -570,6 +570,11 @@ class Initialisation:
     folded : bool
         The initial lens is the folded orthographic one (``f sin a`` up to 180 deg), whose
         image no increasing radial mapping can follow.
+    alternatives : list of Initialisation
+        Other initial lenses of a lens that left many observations inconsistent (its
+        other warps, :class:`~.initialize.InitialisationResult`), most consistent
+        first: :func:`calibrate` starts again from the first when its result cannot be
+        trusted.
     """
 
     dataset: Dataset
@@ -582,6 +587,7 @@ class Initialisation:
     principal_point_px: np.ndarray | None = None
     warp_w: float = 0.0
     folded: bool = False
+    alternatives: list[Initialisation] = field(default_factory=list)
 
 
 def initialise(
@@ -608,6 +614,16 @@ def initialise(
         progress=say,
     )
     say(f"initial lens: {init.lens.describe()} (family {init.mapping}, f = {init.f_px:.1f} px)")
+    chosen = _initialisation_of(dataset, init, say)
+    chosen.alternatives = [
+        _initialisation_of(dataset, alt, lambda _line: None) for alt in init.alternatives
+    ]
+    return chosen
+
+
+def _initialisation_of(dataset: Dataset, init, say: Callable[[str], None]) -> Initialisation:
+    """The :class:`Initialisation` of an :class:`~.initialize.InitialisationResult`:
+    its poses, lens and consistent observations, without the images it failed on."""
     n_input_images = len(dataset.image_ids)
     R, t = init.cam_from_world_R, init.cam_from_world_t
     inliers = np.asarray(init.inlier_mask, bool)[init.ok[dataset.obs_image]]
@@ -928,6 +944,42 @@ def _folds_like_a_sphere(calib: Calibration) -> bool:
     return _folds_like_a_sphere_deg(fold_deg, seen_deg)
 
 
+def _from_another_initial_lens(
+    dataset: Dataset,
+    options: CalibrationOptions,
+    progress: Callable[[str], None] | None,
+    init: Initialisation,
+    calib: Calibration,
+) -> Calibration:
+    """A calibration that cannot be trusted, started from a lens that left many
+    observations inconsistent: calibrate again from the initialisation's first
+    alternative (:attr:`Initialisation.alternatives`) and keep that if it can be
+    trusted (``statistics.initial_lens_fallback`` says so), else ``calib``.
+
+    Such a lens (zoo case 05: a 150 deg pinhole with strong Brown terms in a small
+    circle, 55-65 % of the observations consistent) is chaotic: a change in the last
+    digits of the initial poses can decide between trusted at 0.3x the oracle's 3D
+    error and not trusted at 30-60x, and one of its other warps then often succeeds.
+    """
+    say = progress or (lambda _line: None)
+    alt = init.alternatives[0]
+    why = "; ".join(calib.statistics["distrust"])
+    say(
+        f"not trusted ({why}) from an initial lens that left "
+        f"{int(np.sum(~np.asarray(init.inlier_mask, bool)))} observations inconsistent: "
+        f"calibrating again from its alternative with warp w = {alt.warp_w:.1f} "
+        f"({int(np.sum(alt.inlier_mask))} consistent)"
+    )
+    again, _ = _calibrate_once(dataset, options, progress, alt)
+    if not again.statistics["trusted"]:
+        say("not trusted from the alternative either: the first result is kept")
+        return calib
+    again.statistics["initial_lens_fallback"] = (
+        f"warp w = {init.warp_w:g} -> {alt.warp_w:g}: the first calibration was not trusted ({why})"
+    )
+    return again
+
+
 def calibrate(
     dataset: Dataset,
     options: CalibrationOptions | None = None,
@@ -956,7 +1008,10 @@ def calibrate(
         radial model's mapping folds inside the observed field (a lens that
         folds, like an orthographic one past 180 deg) the sphere model is
         tried from the same initialisation and kept if it can be trusted
-        (``statistics.model_fallback`` says so).
+        (``statistics.model_fallback`` says so). When a result cannot be trusted and
+        the initial lens left many observations inconsistent, the calibration starts
+        again from the initialisation's best other lens and keeps that if it can be
+        trusted (``statistics.initial_lens_fallback``).
     """
     options = options or CalibrationOptions()
     say = progress or (lambda _line: None)
@@ -991,6 +1046,8 @@ def calibrate(
         if radial and not calib.statistics["trusted"] and _folds_like_a_sphere(calib):
             reason = "the radial mapping folded inside the observed field"
             calib = sphere_instead(reason, init) or calib
+        if not calib.statistics["trusted"] and init.alternatives:
+            calib = _from_another_initial_lens(dataset, options, progress, init, calib)
     for reason in calib.statistics["distrust"]:
         logger.warning("do not trust this result: %s", reason)
     return calib

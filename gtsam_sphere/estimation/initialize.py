@@ -465,6 +465,11 @@ class InitialisationResult:
     threshold_px : pixel inlier threshold of the final pass.
     disc : (centre_px (2,), radius_px) of the disc the observations fill, or None.
     tried : one line per hypothesis tried in the final pass and rejected.
+    alternatives : other lenses of a poorly explained one (:func:`_other_warps`: the
+        chosen lens and its other warps, each with its own poses), at least half of
+        the observations consistent, most consistent first, each an
+        ``InitialisationResult`` (without alternatives). ``calibrate`` starts again
+        from the first when its result cannot be trusted.
     """
 
     cam_from_world_R: np.ndarray
@@ -480,6 +485,7 @@ class InitialisationResult:
     threshold_px: float = float("nan")
     disc: tuple | None = None
     tried: list[str] = field(default_factory=list)
+    alternatives: list[InitialisationResult] = field(default_factory=list)
 
     @property
     def principal_point_px(self) -> np.ndarray:
@@ -1134,37 +1140,50 @@ def initialize_poses(
             <= n_consistent
             < _POOR_INLIER_FRACTION * n_eligible_obs
         )
+        others = []
         if poor and not posed[5].folded:  # no odd polynomial follows a fold
             say(
                 f"{int(n_consistent)} of {n_eligible_obs} observations consistent: "
                 "trying the lens with other warps"
             )
-            posed = _other_warps(problem, eligible, thr, image_seeds, min_inliers, posed, say)
+            posed, others = _other_warps(
+                problem, eligible, thr, image_seeds, min_inliers, posed, say
+            )
         rot, trans, ok, inlier_mask, fails, lens = posed
         if lens.folded:
             _in_front_of_the_fold(problem, lens, rot, trans, ok, inlier_mask, thr, say)
         frac = inlier_mask.sum() / max(n_eligible_obs, 1)
         if frac >= _MIN_INLIER_FRACTION and ok.any():
-            failures.update(fails)
             say(
-                f"initialised {int(ok.sum())} of {n_images} images ({len(failures)} failed); "
+                f"initialised {int(ok.sum())} of {n_images} images "
+                f"({len(failures) + len(fails)} failed); "
                 f"{100 * frac:.1f} % of the observations consistent"
             )
-            return InitialisationResult(
-                cam_from_world_R=rot,
-                cam_from_world_t=trans,
-                ok=ok,
-                inlier_mask=inlier_mask,
-                mapping=family.mapping,
-                f_px=float(family.f_px),
-                failures=dict(sorted(failures.items())),
-                threshold_rad=float(thr / lens.f_px),
-                scores=scores,
-                lens=lens,
-                threshold_px=float(thr),
-                disc=disc,
-                tried=tried,
-            )
+
+            def result(posed_, failures=failures, family=family, thr=thr):
+                return InitialisationResult(
+                    cam_from_world_R=posed_[0],
+                    cam_from_world_t=posed_[1],
+                    ok=posed_[2],
+                    inlier_mask=posed_[3],
+                    mapping=family.mapping,
+                    f_px=float(family.f_px),
+                    failures=dict(sorted({**failures, **posed_[4]}.items())),
+                    threshold_rad=float(thr / posed_[5].f_px),
+                    scores=scores,
+                    lens=posed_[5],
+                    threshold_px=float(thr),
+                    disc=disc,
+                    tried=tried,
+                )
+
+            chosen = result(posed)
+            chosen.alternatives = [
+                result(o)
+                for o in others
+                if o[3].sum() >= _MIN_INLIER_FRACTION * n_eligible_obs and o[2].any()
+            ]
+            return chosen
         why = f"{lens.describe()}: {100 * frac:.1f} % of the observations consistent"
         tried.append(why)
         say(f"rejected: {why}; trying the next hypothesis")
@@ -1315,7 +1334,9 @@ def _other_warps(problem, images, thr, seeds, min_inliers, posed, say):
     """The chosen lens re-expressed with each warp of :data:`_OTHER_WARPS`, every image
     posed again and refitted (:func:`_final_refit`); the one explaining the most
     observations when that is :data:`_OTHER_WARP_GAIN` of them more than ``posed``'s,
-    else ``posed`` itself.
+    else ``posed`` itself. Returns ``(chosen, others)``: the others (``posed`` first
+    when it is not chosen, then the warps, most consistent first) are alternatives the
+    calibration starts again from when its result cannot be trusted.
 
     For a lens no family matches: the refit polynomial follows the shape only as far as
     its warp lets it, and its inliers are where it already fits. Seed 4 case 05 of the
@@ -1328,7 +1349,7 @@ def _other_warps(problem, images, thr, seeds, min_inliers, posed, say):
     rot, trans, mask, lens = posed[0], posed[1], posed[3], posed[5]
     idx = np.flatnonzero(mask)
     if idx.size < 4 * _N_POLY:
-        return posed
+        return posed, []
     img = problem.obs_image[idx]
     p = np.einsum("nij,nj->ni", rot[img], problem.points[idx]) + trans[img]
     alpha_seen = np.arctan2(np.hypot(p[:, 0], p[:, 1]), p[:, 2])
@@ -1338,7 +1359,8 @@ def _other_warps(problem, images, thr, seeds, min_inliers, posed, say):
     usable = np.isfinite(r)
     best = None
     if usable.sum() < 2 * _N_POLY:
-        return posed
+        return posed, []
+    tried = []
     for w in _OTHER_WARPS:
         if lens.mapping == "fitted" and abs(w - lens.warp_w) < 0.25:
             continue  # its own warp: the final refit has been there
@@ -1349,17 +1371,19 @@ def _other_warps(problem, images, thr, seeds, min_inliers, posed, say):
         again = _pose_all(problem, images, hyp, thr, seeds, min_inliers)
         again = _final_refit(problem, images, hyp, thr, seeds, min_inliers, again, say)
         say(f"warp w = {w:.1f}: {again[5].describe()}, {int(again[3].sum())} consistent")
+        tried.append(again)
         if best is None or again[3].sum() > best[3].sum():
             best = again
     n_kept, n_all = int(posed[3].sum()), posed[3].size
+    ranked = sorted(tried, key=lambda x: -int(x[3].sum()))  # stable: warp order on ties
     if best is None or best[3].sum() < n_kept + _OTHER_WARP_GAIN * n_all:
         say(
             f"keeping the lens: no warp explains {100 * _OTHER_WARP_GAIN:.0f} % more of the "
             f"{n_all} observations than its {n_kept}"
         )
-        return posed
+        return posed, ranked
     say(f"warp w = {best[5].warp_w:.1f} kept: {int(best[3].sum())} consistent")
-    return best
+    return best, [posed, *[x for x in ranked if x is not best]]
 
 
 def _final_refit(problem, images, lens, thr, seeds, min_inliers, posed, say):
