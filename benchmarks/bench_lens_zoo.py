@@ -387,6 +387,8 @@ def run_case(case: Case, workdir: Path, verbose: bool = False) -> dict:
             1 for ln in lines if ln.startswith("kNN round ") and not ln.startswith("kNN round 0")
         )
         row["knn_stable"] = any(ln.startswith("kNN loop stable") for ln in lines)
+        # a second run: another model (a lens that folds) or another initial lens
+        row["fallback"] = st.get("model_fallback") or st.get("initial_lens_fallback") or ""
         cam, lens = calib.camera, sim.lens
         row["pp_error_px"] = float(math.hypot(cam.xp - lens.cx, cam.yp - lens.cy))
         c_true = _axis_scale_px(lens)
@@ -462,6 +464,8 @@ def print_table(rows: list[dict]) -> None:
             )
         if "oracle_error" in r:
             print(f"  {r['id']}: oracle failed: {r['oracle_error']}")
+        if r.get("fallback"):
+            print(f"  {r['id']}: calibrated twice: {r['fallback']}")
     for line in summary_lines(rows):
         print(line)
 
