@@ -1159,27 +1159,17 @@ def initialize_poses(
                 f"({len(failures) + len(fails)} failed); "
                 f"{100 * frac:.1f} % of the observations consistent"
             )
-
-            def result(posed_, failures=failures, family=family, thr=thr):
-                return InitialisationResult(
-                    cam_from_world_R=posed_[0],
-                    cam_from_world_t=posed_[1],
-                    ok=posed_[2],
-                    inlier_mask=posed_[3],
-                    mapping=family.mapping,
-                    f_px=float(family.f_px),
-                    failures=dict(sorted({**failures, **posed_[4]}.items())),
-                    threshold_rad=float(thr / posed_[5].f_px),
-                    scores=scores,
-                    lens=posed_[5],
-                    threshold_px=float(thr),
-                    disc=disc,
-                    tried=tried,
-                )
-
-            chosen = result(posed)
+            shared = dict(
+                mapping=family.mapping,
+                f_px=float(family.f_px),
+                scores=scores,
+                threshold_px=float(thr),
+                disc=disc,
+                tried=tried,
+            )
+            chosen = _result_of(posed, failures, **shared)
             chosen.alternatives = [
-                result(o)
+                _result_of(o, failures, **shared)
                 for o in others
                 if o[3].sum() >= _MIN_INLIER_FRACTION * n_eligible_obs and o[2].any()
             ]
@@ -1194,6 +1184,23 @@ def initialize_poses(
         "Check the target ids and coordinates (units, mislabelled points) and the image "
         "size; a lens beyond the families tried (pinhole, stereographic, equidistant, "
         "equisolid, orthographic, field-of-view k = 4) may need a first guess."
+    )
+
+
+def _result_of(posed, failures: dict[int, str], **shared) -> InitialisationResult:
+    """The :class:`InitialisationResult` of ``posed`` (rot, trans, ok, inlier mask,
+    failures, lens) from :func:`_pose_all`; ``failures`` of the images not posed at all,
+    ``shared`` the fields every lens of the final pass has in common."""
+    rot, trans, ok, inlier_mask, fails, lens = posed
+    return InitialisationResult(
+        cam_from_world_R=rot,
+        cam_from_world_t=trans,
+        ok=ok,
+        inlier_mask=inlier_mask,
+        failures=dict(sorted({**failures, **fails}.items())),
+        threshold_rad=float(shared["threshold_px"] / lens.f_px),
+        lens=lens,
+        **shared,
     )
 
 
@@ -1357,7 +1364,6 @@ def _other_warps(problem, images, thr, seeds, min_inliers, posed, say):
     grid = np.linspace(0.0, a_top, 200)[1:]
     r = lens.radius_px(grid)
     usable = np.isfinite(r)
-    best = None
     if usable.sum() < 2 * _N_POLY:
         return posed, []
     tried = []
@@ -1372,18 +1378,16 @@ def _other_warps(problem, images, thr, seeds, min_inliers, posed, say):
         again = _final_refit(problem, images, hyp, thr, seeds, min_inliers, again, say)
         say(f"warp w = {w:.1f}: {again[5].describe()}, {int(again[3].sum())} consistent")
         tried.append(again)
-        if best is None or again[3].sum() > best[3].sum():
-            best = again
     n_kept, n_all = int(posed[3].sum()), posed[3].size
     ranked = sorted(tried, key=lambda x: -int(x[3].sum()))  # stable: warp order on ties
-    if best is None or best[3].sum() < n_kept + _OTHER_WARP_GAIN * n_all:
+    if not ranked or ranked[0][3].sum() < n_kept + _OTHER_WARP_GAIN * n_all:
         say(
             f"keeping the lens: no warp explains {100 * _OTHER_WARP_GAIN:.0f} % more of the "
             f"{n_all} observations than its {n_kept}"
         )
         return posed, ranked
-    say(f"warp w = {best[5].warp_w:.1f} kept: {int(best[3].sum())} consistent")
-    return best, [posed, *[x for x in ranked if x is not best]]
+    say(f"warp w = {ranked[0][5].warp_w:.1f} kept: {int(ranked[0][3].sum())} consistent")
+    return ranked[0], [posed, *ranked[1:]]
 
 
 def _final_refit(problem, images, lens, thr, seeds, min_inliers, posed, say):
