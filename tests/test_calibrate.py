@@ -206,27 +206,39 @@ def test_a_given_sigma_is_kept_through_the_knn_rounds():
     assert not any("robust scale estimate" in line for line in lines)
 
 
-def _fold_branch(monkeypatch, sphere_trusted: bool):
+def _fold_branch(
+    monkeypatch,
+    sphere_trusted: bool,
+    radial_sigma_px: float | None = None,
+    sphere_sigma_px: float = 0.3,
+):
     """:func:`calibrate` with ``_calibrate_once`` replaced: the radial run reports an early
-    fold, the sphere run is (not) trusted. Returns the result, the calls and the lines."""
+    fold (where its robust sigma was ``radial_sigma_px``), the sphere run is (not)
+    trusted and its first adjustment's sigma ``sphere_sigma_px``. Returns the result,
+    the calls and the lines."""
     import gtsam_sphere.estimation.calibrate as cal_mod
 
     init = object()
     calls, lines = [], []
 
-    def result(model, trusted):
+    def result(model, trusted, first_sigma_px):
         return types.SimpleNamespace(
             model=str(model),
-            statistics={"trusted": trusted, "converged": True, "distrust": []},
+            statistics={
+                "trusted": trusted,
+                "converged": True,
+                "distrust": [],
+                "first_sigma_px": first_sigma_px,
+            },
         )
 
     def fake_once(dataset, options, progress, init_in=None, fold_probe=False):
         calls.append((str(options.model), init_in, fold_probe))
         if len(calls) == 1:
-            raise cal_mod._FoldsEarly(init, "the initial lens folds at 90.0 deg")
+            raise cal_mod._FoldsEarly(init, "the initial lens folds at 90.0 deg", radial_sigma_px)
         if options.model.uses_radial:
-            return result(options.model, True), init_in
-        return result(options.model, sphere_trusted), init_in
+            return result(options.model, True, 0.3), init_in
+        return result(options.model, sphere_trusted, sphere_sigma_px), init_in
 
     monkeypatch.setattr(cal_mod, "_calibrate_once", fake_once)
     calib = calibrate(object(), CalibrationOptions(), lines.append)
@@ -251,6 +263,44 @@ def test_an_early_fold_with_an_untrusted_sphere_model_finishes_the_radial_run(mo
     assert calib.model == "radial+knn" and calib.statistics["trusted"]
     assert "model_fallback" not in calib.statistics
     assert any("not trusted: the radial+knn model after all" in ln for ln in lines)
+
+
+def test_an_early_fold_keeps_a_sphere_model_that_fits_as_well(monkeypatch):
+    # a lens that does fold: the sphere model fits at least about as well as the
+    # radial mapping where it was seen folding (a 250 deg orthographic room: 0.294 px
+    # against 0.329 px)
+    calib, calls, _ = _fold_branch(
+        monkeypatch, sphere_trusted=True, radial_sigma_px=0.329, sphere_sigma_px=0.294
+    )
+    assert [c[0] for c in calls] == ["radial+knn", "sphere+knn"]
+    assert calib.model == "sphere+knn" and "model_fallback" in calib.statistics
+
+
+def test_an_early_fold_rejects_a_trusted_sphere_model_that_fits_clearly_worse(monkeypatch):
+    # a lens whose rim is only squeezed (a 215 deg catadioptric lens): the sphere model
+    # fit at 2.65 px against the folding radial stage's 1.01 px, and its kNN rounds
+    # learned the misfit: trusted at 20x the oracle's 3D error before this rule
+    calib, calls, lines = _fold_branch(
+        monkeypatch, sphere_trusted=True, radial_sigma_px=1.01, sphere_sigma_px=2.65
+    )
+    assert [c[0] for c in calls] == ["radial+knn", "sphere+knn", "radial+knn"]
+    assert calls[2][2] is False  # the radial run again, without the probe
+    assert calib.model == "radial+knn" and "model_fallback" not in calib.statistics
+    assert any(
+        "fits worse than the radial mapping where it folded (robust sigma 2.650 px against "
+        "1.010 px): the radial+knn model after all" in ln
+        for ln in lines
+    )
+
+
+def test_sphere_fits_worse_compares_the_two_first_adjustments():
+    from gtsam_sphere.estimation.calibrate import SPHERE_FIT_RATIO, sphere_fits_worse
+
+    assert sphere_fits_worse(0.294, 0.329) == ""
+    assert sphere_fits_worse(SPHERE_FIT_RATIO * 1.0, 1.0) == ""  # the bound is kept
+    assert "2.650 px against 1.010 px" in sphere_fits_worse(2.65, 1.01)
+    assert sphere_fits_worse(5.0, None) == ""  # the initial lens folded: nothing to compare
+    assert sphere_fits_worse(float("nan"), 1.0) != ""  # no usable fit is no better fit
 
 
 def _retry_branch(monkeypatch, alternative_trusted: bool):
@@ -338,6 +388,30 @@ def test_the_fold_probe_runs_between_the_first_adjustments_stages(monkeypatch):
     assert len(seen) == 1  # the radial run stopped at its first probe
     assert "a first-adjustment stage's mapping folds" in calib.statistics["model_fallback"]
     assert calib.model == "sphere"
+
+
+def test_a_sphere_model_that_fits_far_worse_does_not_replace_the_radial_one(monkeypatch):
+    """A 200 deg equidistant lens does not fold. Made to look folding at the first probe,
+    the sphere model takes over only if it fits as well; it does not (tens of px against
+    0.3 px) and must not be kept even where nothing else marks it untrusted."""
+    import gtsam_sphere.estimation.calibrate as cal_mod
+
+    sim = simulate_room(
+        SimulationOptions(
+            lens="equidistant", fov_deg=200.0, n_images=8, n_targets=80, noise_px=0.3, seed=4
+        )
+    )
+    dataset = parse_dataset(sim.dataset)
+    verdicts = iter([True])  # the first probe says "folds", any later one not
+    monkeypatch.setattr(cal_mod, "_folds_like_a_sphere_deg", lambda f, s: next(verdicts, False))
+    lines = []
+    calib = calibrate(dataset, CalibrationOptions(model="radial"), lines.append)
+    worse = [ln for ln in lines if "the sphere model fits worse than the radial mapping" in ln]
+    assert len(worse) == 1 and worse[0].endswith("the radial model after all")
+    assert calib.model == "radial" and "model_fallback" not in calib.statistics
+    assert calib.statistics["trusted"]
+    assert calib.statistics["first_sigma_px"] < 0.5
+    assert abs(calib.camera.c - sim.lens.f) < 0.01 * sim.lens.f
 
 
 def test_the_initial_radial_mapping_starts_from_sane_coefficients():
