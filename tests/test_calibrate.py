@@ -211,6 +211,7 @@ def _fold_branch(
     sphere_trusted: bool,
     radial_sigma_px: float | None = None,
     sphere_sigma_px: float = 0.3,
+    sphere_knn_rounds: int = 2,
 ):
     """:func:`calibrate` with ``_calibrate_once`` replaced: the radial run reports an early
     fold (where its robust sigma was ``radial_sigma_px``), the sphere run is (not)
@@ -229,6 +230,7 @@ def _fold_branch(
                 "converged": True,
                 "distrust": [],
                 "first_sigma_px": first_sigma_px,
+                "knn_rounds": sphere_knn_rounds,
             },
         )
 
@@ -291,6 +293,31 @@ def test_an_early_fold_rejects_a_trusted_sphere_model_that_fits_clearly_worse(mo
         "1.010 px): the radial+knn model after all" in ln
         for ln in lines
     )
+
+
+def test_an_early_fold_rejects_a_sphere_model_whose_knn_loop_learns_a_misfit(monkeypatch):
+    # a 98 deg double-sphere board with 5 % blunders: the sphere model fit about as well
+    # as the (wrongly) folding radial stage (1.19 against 0.98 px) and its kNN loop then
+    # took 13 rounds to learn the misfit: trusted at 48x the oracle's 3D error before
+    calib, calls, lines = _fold_branch(
+        monkeypatch,
+        sphere_trusted=True,
+        radial_sigma_px=0.98,
+        sphere_sigma_px=1.19,
+        sphere_knn_rounds=13,
+    )
+    assert [c[0] for c in calls] == ["radial+knn", "sphere+knn", "radial+knn"]
+    assert calib.model == "radial+knn" and "model_fallback" not in calib.statistics
+    assert any("needed 13 kNN rounds" in ln and "model after all" in ln for ln in lines)
+
+
+def test_sphere_learns_a_misfit_counts_the_rounds():
+    from gtsam_sphere.estimation.calibrate import FALLBACK_KNN_ROUNDS, sphere_learns_a_misfit
+
+    assert sphere_learns_a_misfit(0) == ""  # no kNN (model sphere)
+    assert sphere_learns_a_misfit(4) == ""  # the most a lens that folds needed
+    assert sphere_learns_a_misfit(FALLBACK_KNN_ROUNDS) == ""
+    assert "needed 13 kNN rounds" in sphere_learns_a_misfit(13)
 
 
 def test_sphere_fits_worse_compares_the_two_first_adjustments():

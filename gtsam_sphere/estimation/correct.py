@@ -175,6 +175,8 @@ def grey_box_loop(problem, adj, optimizer, options, say: Callable[[str], None], 
     stable : bool
         Both figures became stable within ``knn["max_rounds"]`` (False: the loop ran
         out of rounds, which the calibration reports as a reason not to trust it).
+    rounds : int
+        Rounds run (round 0, the adjustment without a correction, not counted).
     """
     # local-linear kNN pays where the field is hundreds of pixels (the pure sphere
     # mapping); on top of a parametric lens (radial, Brown) the field is small and smooth
@@ -195,6 +197,7 @@ def grey_box_loop(problem, adj, optimizer, options, say: Callable[[str], None], 
     say(f"kNN round 0: RMS {rms:.4f} px within 5 sigma (no correction)")
     searches = NeighbourSearches()  # the rounds search the same pixels
     stable = False
+    rnd = 0
     for rnd in range(1, int(cfg["max_rounds"]) + 1):
         target = problem.corrections_px + adj.residuals_px
         train = adj.weights >= 0.5 if cfg["train"] == "weights" else None
@@ -242,4 +245,4 @@ def grey_box_loop(problem, adj, optimizer, options, say: Callable[[str], None], 
     _, adj, model, corrections = best
     problem.corrections_px = corrections
     problem.build()  # blocks in step with the kept corrections
-    return adj, model, history, stable
+    return adj, model, history, stable, rnd
