@@ -321,3 +321,22 @@ def test_a_sphere_model_that_does_not_follow_the_lens_is_not_a_silent_answer(cas
     assert "model_fallback" not in calib.statistics
     c_true = ZOO._axis_scale_px(sim.lens)
     assert not calib.statistics["trusted"] or abs(calib.camera.c / c_true - 1.0) < 0.05
+
+
+def test_the_summary_counts_trusted_results_far_from_every_reference():
+    def row(i, success, ratio, family, blind=None):
+        r = {"id": f"c{i}", "success": success, "ratio": ratio, "family_ratio": family}
+        if blind is not None:
+            r["field_blind_ratio"] = blind
+        return r
+
+    rows = [
+        row(0, True, 1.0, 1.0),
+        row(1, True, 48.0, 46.0),  # silent
+        row(2, False, 48.0, 46.0),  # wrong, but not trusted
+        row(3, True, 2.5, 2.6, 0.85),  # an error field the poses absorb
+        row(4, True, 3.0, 1.1),  # estimating pp and c costs this much here
+        row(5, True, 5.0, 4.0, 3.0),  # silent, error field or not
+    ]
+    line = next(ln for ln in ZOO.summary_lines(rows) if ln.startswith("trusted but over"))
+    assert line.endswith(": 2 (c1, c5)"), line
