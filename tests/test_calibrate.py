@@ -311,6 +311,39 @@ def test_an_early_fold_rejects_a_sphere_model_whose_knn_loop_learns_a_misfit(mon
     assert any("needed 13 kNN rounds" in ln and "model after all" in ln for ln in lines)
 
 
+def test_the_first_stage_starts_are_ranked_by_a_truncated_cost():
+    """A start that bends toward blunders (its inliers worse, its blunders smaller but
+    still gross) loses to the clean one; a start that fits valid observations RANSAC
+    rejected (a 300 deg sphere lens beyond 90 deg) wins over one that leaves them."""
+    from gtsam_sphere.estimation.calibrate import _truncated_costs
+
+    rng = np.random.default_rng(3)
+    n, n_bad = 1000, 50
+    problem = types.SimpleNamespace(residuals_px=lambda r: r)  # "values" are residuals
+
+    def residuals(inlier_sigma, blunder_px):
+        r = rng.normal(0.0, inlier_sigma, (n, 2))
+        r[:n_bad] = blunder_px / np.sqrt(2.0)
+        return r
+
+    clean, bent = residuals(0.3, 60.0), residuals(0.5, 20.0)
+    cost_clean, cost_bent = _truncated_costs(problem, [clean, bent])
+    assert cost_clean < cost_bent
+    # Huber with each start's own median scale, the former rule, preferred the bent one
+    from gtsam_sphere.core.robust import Loss, robust_sigma_px, robust_weight
+
+    def huber_own_scale(res):
+        r = np.linalg.norm(res, axis=1)
+        sigma = robust_sigma_px(r, 1e-9)
+        return float(np.sum(robust_weight(r / sigma, Loss.HUBER, 1.345)[1])) * sigma**2
+
+    assert huber_own_scale(bent) < huber_own_scale(clean)
+    # valid observations left at 30 px by one start, fitted by the other
+    fits_all, leaves = residuals(0.3, 0.3), residuals(0.3, 30.0)
+    cost_all, cost_leaves = _truncated_costs(problem, [fits_all, leaves])
+    assert cost_all < cost_leaves
+
+
 def test_sphere_learns_a_misfit_counts_the_rounds():
     from gtsam_sphere.estimation.calibrate import FALLBACK_KNN_ROUNDS, sphere_learns_a_misfit
 
