@@ -42,7 +42,10 @@ def add_calibration_options(p: argparse.ArgumentParser) -> None:
         "(default: dropped by a Wald test with a BIC penalty, docs/conventions.md)",
     )
     p.add_argument("--optimizer", choices=[o.value for o in OptimizerKind], default="lm")
-    p.add_argument("--loss", choices=[x.value for x in Loss], default="huber")
+    # the truncated quadratic ranks solutions (calibrate's first stage); its 0/1 weights
+    # can strand a target whose every observation is beyond the threshold: not offered
+    losses = [x.value for x in Loss if x is not Loss.TRUNCATED]
+    p.add_argument("--loss", choices=losses, default="huber")
     p.add_argument("--loss-threshold", type=float, default=2.45, help="robust threshold in sigmas")
     p.add_argument(
         "--sigma-px",

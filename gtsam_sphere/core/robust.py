@@ -51,6 +51,11 @@ class Loss(StrEnum):
     CAUCHY = "cauchy"
     TUKEY = "tukey"
     GEMAN_MCCLURE = "geman-mcclure"
+    #: truncated quadratic, ``min(r, k)^2 / 2``: every residual beyond ``k`` costs the
+    #: same wherever it lands, so it ranks solutions without rewarding one for moving
+    #: toward blunders (the first stage's starts, ``estimation.calibrate``); as an IRLS
+    #: loss it gives weight 1 inside ``k`` and 0 beyond
+    TRUNCATED = "truncated"
 
 
 def robust_weight(r: np.ndarray, loss: Loss | str, k: float) -> tuple[np.ndarray, np.ndarray]:
@@ -76,6 +81,8 @@ def robust_weight(r: np.ndarray, loss: Loss | str, k: float) -> tuple[np.ndarray
     if loss is Loss.GEMAN_MCCLURE:
         d = k * k + r * r
         return k**4 / d**2, 0.5 * k * k * r * r / d
+    if loss is Loss.TRUNCATED:
+        return (r <= k).astype(float), 0.5 * np.minimum(r, k) ** 2
     raise ValueError(f"unknown loss {loss!r}")
 
 

@@ -353,8 +353,8 @@ STAGE_ONE_CAP = 3.0
 
 def _truncated_costs(problem: BundleProblem, candidates: list[gtsam.Values]) -> list[float]:
     """Truncated least-squares cost (px^2) of every observation at each of ``candidates``:
-    ``sum(min(r^2, (STAGE_ONE_CAP sigma)^2))`` with one scale for all, the smallest of
-    their median-based scales.
+    ``sum(min(r^2, (STAGE_ONE_CAP sigma)^2))`` (:attr:`Loss.TRUNCATED`) with one scale
+    for all, the smallest of their median-based scales.
 
     It ranks the two starts of :func:`adjust`'s first stage (with every observation, and
     without those RANSAC rejected). A blunder costs the same wherever it lands, so a
@@ -368,8 +368,9 @@ def _truncated_costs(problem: BundleProblem, candidates: list[gtsam.Values]) -> 
     """
     r = [np.linalg.norm(problem.residuals_px(v), axis=1) for v in candidates]
     sigma = min(robust_sigma_px(ri, 1e-9) for ri in r)
-    cap = (STAGE_ONE_CAP * sigma) ** 2
-    return [float(np.sum(np.minimum(ri**2, cap))) for ri in r]
+    # rho = min(r / sigma, cap)^2 / 2 in sigmas; 2 sigma^2 rho is the cost in px^2
+    rho = [robust_weight(ri / sigma, Loss.TRUNCATED, STAGE_ONE_CAP)[1] for ri in r]
+    return [float(2.0 * sigma**2 * np.sum(x)) for x in rho]
 
 
 def _inlier_problem(problem: BundleProblem, mask: np.ndarray | None) -> BundleProblem | None:
