@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import functools
 import types
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -319,7 +320,8 @@ def test_the_first_stage_starts_are_ranked_by_a_truncated_cost():
 
     rng = np.random.default_rng(3)
     n, n_bad = 1000, 50
-    problem = types.SimpleNamespace(residuals_px=lambda r: r)  # "values" are residuals
+    # "values" are residuals; no Brown terms: raw pixels are the residuals
+    problem = types.SimpleNamespace(residuals_px=lambda r: r, brown_names=())
 
     def residuals(inlier_sigma, blunder_px):
         r = rng.normal(0.0, inlier_sigma, (n, 2))
@@ -644,3 +646,50 @@ def test_outliers_are_classified_as_with_every_target_projected_exactly(degree):
             assert entry["cause"] == "mislabelled"
             assert entry["matches_target"] == expected[0]
             assert entry["distance_px"] == pytest.approx(expected[1], abs=1e-9)
+
+
+@pytest.mark.parametrize("a1", [0.0, 0.01, 0.3])
+def test_raw_residuals_are_reprojection_errors_in_pixels(a1):
+    """The adjustment's residuals live in corrected coordinates, which an affinity ``a1``
+    shrinks along x by ``1 - a1``; :func:`raw_residuals_px` gives ``uv - project(P)``,
+    the scale of the noise, whatever the Brown terms (the first stage's ranking)."""
+    import gtsam
+
+    from gtsam_sphere.core.camera import SphereCamera
+    from gtsam_sphere.estimation.calibrate import raw_residuals_px
+    from gtsam_sphere.estimation.graph import INTRINSICS_KEY, BundleProblem, pose_key
+
+    rng = np.random.default_rng(5)
+    brown = {"p1": 0.001, "p2": -0.002, "a1": a1, "a2": 0.005}
+    cam = SphereCamera(
+        width=1000, height=800, xp=510.0, yp=390.0, c=300.0, brown=brown, brown_scale_px=500.0
+    )
+    d = rng.normal(size=(300, 3))
+    d[:, 2] = np.abs(d[:, 2]) + 0.3
+    xyz = d / np.linalg.norm(d, axis=1)[:, None] * rng.uniform(2.0, 5.0, (300, 1))
+    uv = cam.project(xyz) + rng.normal(0.0, 0.5, (300, 2))
+    problem = BundleProblem(
+        obs_image=np.zeros(300, int),
+        obs_target=np.arange(300),
+        uv_px=uv,
+        target_xyz=xyz,
+        target_sigma=np.zeros(300),
+        n_images=1,
+        brown_names=tuple(brown),
+        brown_scale_px=500.0,
+    )
+    values = gtsam.Values()
+    values.insert(pose_key(0), gtsam.Pose3())
+    values.insert(INTRINSICS_KEY, np.array([510.0, 390.0, 300.0, *brown.values()]))
+    problem.build()
+    ideal = problem.residuals_px(values)
+    raw = raw_residuals_px(problem, values)
+    np.testing.assert_allclose(raw, uv - cam.project(xyz), atol=1e-4)
+    rms_ideal, rms_raw = np.sqrt(np.mean(ideal**2, 0)), np.sqrt(np.mean(raw**2, 0))
+    assert rms_ideal[0] == pytest.approx((1.0 - a1) * rms_raw[0], rel=0.05)
+    assert 0.4 < rms_raw[0] < 0.6  # the noise's scale
+    # without Brown terms the two are the same array
+    plain = replace(problem, brown_names=())
+    plain.build()
+    values.update(INTRINSICS_KEY, np.array([510.0, 390.0, 300.0]))
+    np.testing.assert_array_equal(raw_residuals_px(plain, values), plain.residuals_px(values))
