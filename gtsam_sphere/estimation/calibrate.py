@@ -209,6 +209,7 @@ def adjust(
     first_stage_mask: np.ndarray | None = None,
     warm: bool = False,
     after_stage: Callable[[gtsam.Values, np.ndarray, float], bool | None] | None = None,
+    first_stage_all: bool = True,
 ) -> Adjustment:
     """Robust adjustment, optionally estimating ``sigma_px`` from the residuals.
 
@@ -222,7 +223,14 @@ def adjust(
     adjustments. The first stage is plain
     least squares; ``first_stage_mask`` (N,) bool restricts it to the
     observations the initialisation's RANSAC found consistent, so blunders
-    cannot pull it (the robust stages then see every observation).
+    cannot pull it (the robust stages then see every observation). It also runs on
+    every observation, and the start with the lower truncated cost in raw pixels wins
+    (:func:`_truncated_costs`), unless ``first_stage_all`` is False: the mask then comes
+    from a converged robust adjustment of the same observations (:func:`readjust`),
+    whose rejects are gross by its own residuals, and least squares on every
+    observation only wanders (a 105 deg field-of-view object with 2 % blunders: 11 s
+    for that start against 0.3 s without them, in each of three target-prior rounds,
+    for a start that then lost).
 
     ``warm``: ``values`` is a converged robust adjustment of this problem with a
     slightly changed measurement (a kNN round's new corrections), and
@@ -270,8 +278,19 @@ def adjust(
         )
         graph = problem.build()
         start = values if result is None else result.values
-        result = optimize(graph, start, optimizer, ordering, progress, label)
         sub = _inlier_problem(problem, first_stage_mask) if first_l2 else None
+        if sub is not None and not first_stage_all:
+            sub_values, sub_ordering = _sub_values(sub, start)
+            n_out = len(problem.uv_px) - len(sub.uv_px)
+            if progress:
+                progress(f"{label}stage 1 without {n_out} observations beyond 5 sigma")
+            result = optimize(sub.build(), sub_values, optimizer, sub_ordering, progress, label)
+            merged = gtsam.Values(start)
+            merged.update(result.values)
+            result.values = merged
+            sub = None
+        else:
+            result = optimize(graph, start, optimizer, ordering, progress, label)
         if sub is not None:
             # least squares breaks down with one blunder, so stage 1 also runs without the
             # observations RANSAC rejected, and the start with the lower truncated cost
@@ -1216,6 +1235,7 @@ def readjust(
         estimate_sigma=estimate_sigma,
         first_stage_mask=None if warm else consistent,
         warm=warm,
+        first_stage_all=False,
     )
 
 
