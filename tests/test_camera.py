@@ -259,3 +259,52 @@ def test_brown_narrow_lens_puts_rays_behind_it_outside_the_image():
     assert radius[back].min() > 3000 and radius[~back].max() < 1000
     again = cam.unproject(uv, hemisphere=cam.pixel_hemisphere(uv))
     np.testing.assert_allclose(again, rays, atol=1e-9)
+
+
+@pytest.mark.parametrize("radial", [None, ("g3", "g5")])
+def test_sphere_residual_jacobians_with_strong_decentering_and_affinity(radial):
+    """Decentering and affinity are undone in the residual (``A^-1 e``): the extra
+    derivative terms against central differences, far from zero (p1 0.01, p2 -0.02,
+    a1 0.3, a2 -0.1)."""
+    rng = np.random.default_rng(11)
+    names = ("p1", "p2", "a1", "a2")
+    g = [] if radial is None else [-0.05, 0.01]
+    theta = np.array([640.0, 400.0, 350.0, *g, 0.01, -0.02, 0.3, -0.1])
+    uv = rng.uniform(100.0, 1200.0, (20, 2))
+    pc = rng.normal(size=(20, 3)) + [0.0, 0.0, 2.0]
+    e, J_theta, J_pc = sphere_residual(theta, names, 500.0, uv, pc, True, radial_names=radial)
+    np.testing.assert_allclose(e, sphere_residual(theta, names, 500.0, uv, pc, radial_names=radial))
+    h = 1e-6
+    for k in range(len(theta)):
+        d = np.zeros_like(theta)
+        d[k] = h * max(1.0, abs(theta[k]))
+        num = (
+            sphere_residual(theta + d, names, 500.0, uv, pc, radial_names=radial)
+            - sphere_residual(theta - d, names, 500.0, uv, pc, radial_names=radial)
+        ) / (2 * d[k])
+        np.testing.assert_allclose(J_theta[:, :, k], num, rtol=1e-5, atol=1e-5, err_msg=str(k))
+    for k in range(3):
+        d = np.zeros(3)
+        d[k] = h
+        num = (
+            sphere_residual(theta, names, 500.0, uv, pc + d, radial_names=radial)
+            - sphere_residual(theta, names, 500.0, uv, pc - d, radial_names=radial)
+        ) / (2 * h)
+        np.testing.assert_allclose(J_pc[:, :, k], num, rtol=1e-5, atol=1e-5)
+    # the corrected-coordinate residual mapped by A^-1; with a1, a2 alone (a linear
+    # map) x is scaled by 1 / (1 - a1) and y is untouched
+    from gtsam_sphere.core.camera import brown_distortion, decentering_affinity_matrix
+
+    n_g = len(g)
+    e0 = sphere_residual(theta[: 3 + n_g], (), 500.0, uv, pc, radial_names=radial)  # xbar - c m
+    xbar = uv - theta[:2]
+    coeffs = dict(zip(names, theta[3 + n_g :]))
+    corrected = e0 - brown_distortion(xbar, coeffs, 500.0)
+    A = decentering_affinity_matrix(xbar, coeffs, 500.0)
+    np.testing.assert_allclose(e, np.linalg.solve(A, corrected[..., None])[..., 0], rtol=1e-12)
+    aff = {"a1": 0.3, "a2": -0.1}
+    theta_aff = np.concatenate([theta[: 3 + n_g], [0.3, -0.1]])
+    e_aff = sphere_residual(theta_aff, ("a1", "a2"), 500.0, uv, pc, radial_names=radial)
+    corrected = e0 - brown_distortion(xbar, aff, 500.0)
+    np.testing.assert_allclose(e_aff[:, 1], corrected[:, 1], rtol=1e-12)
+    np.testing.assert_allclose(e_aff[:, 0], (corrected[:, 0] - 0.1 * corrected[:, 1]) / 0.7)

@@ -420,8 +420,20 @@ def sphere_residual(
 ):
     """Residual of the collinearity condition on the sphere, in pixels.
 
-    ``e = (uv - pp - brown(uv - pp)) - c * m(P)`` with ``m`` from
-    :func:`ideal_projection` and ``theta = [xp, yp, c, *radial, *brown]``.
+    ``e = A^-1 ((uv - pp - brown(uv - pp)) - c * m(P))`` with ``m`` from
+    :func:`ideal_projection`, ``theta = [xp, yp, c, *radial, *brown]`` and ``A = I -
+    d brown_pa / d uv`` the decentering and affinity part of ``I - d brown / d uv``
+    (:func:`decentering_affinity_matrix`; ``I`` without ``p1, p2, a1, a2``).
+
+    The corrections act on the measurement, so the bracket is a residual in corrected
+    coordinates, whose metric the corrections change: an affinity scales x by ``1 -
+    a1``, a decentering term far from the principal point scales y by ``1 - 6 p2 y``
+    (Brown-normalised units). A least-squares cost there can fall by inflating them
+    (a 119 deg equisolid object with 5 % blunders slid to ``a1 = 0.56``, the principal
+    point 650 px off, sigma 0.61 px for 1 px noise, and ended untrusted at 33x the
+    oracle's 3D error). ``A^-1`` maps the residual back to raw pixels to first order;
+    the radial Brown terms ``k1-k3`` stay in corrected coordinates (past 90 deg their
+    fold makes ``I - d brown / d uv`` singular: a pixel does not pin the ray down).
 
     Parameters
     ----------
@@ -455,7 +467,12 @@ def sphere_residual(
     if not jacobians:
         m = ideal_projection(points_cam, radial, warp=warp)
         if brown_names:
-            return xbar - brown_distortion(xbar, coeffs, scale_px) - c * m
+            e = xbar - brown_distortion(xbar, coeffs, scale_px) - c * m
+            if _has_pa(coeffs):
+                # as in the Jacobian branch, to the last bit
+                A_inv = np.linalg.inv(decentering_affinity_matrix(xbar, coeffs, scale_px))
+                return np.einsum("nij,nj->ni", A_inv, e)
+            return e
         return xbar - c * m
     m, J_m, J_r = ideal_projection(points_cam, radial, jacobians=True, warp=warp)
     n = len(m)
@@ -471,7 +488,81 @@ def sphere_residual(
     J_theta[:, :, 2] = -m
     J_theta[:, :, 3:b0] = -c * J_r
     J_theta[:, :, b0:] = -Jc
-    return e, J_theta, -c * J_m
+    J_pc = -c * J_m
+    if not _has_pa(coeffs):
+        return e, J_theta, J_pc
+    # e' = A^-1 e, A = I - J_pa: de' = A^-1 (de + dJ_pa e')
+    A_inv = np.linalg.inv(decentering_affinity_matrix(xbar, coeffs, scale_px))
+    e_out = np.einsum("nij,nj->ni", A_inv, e)
+    dJ = _pa_matrix_derivatives(xbar, coeffs, scale_px)
+    names = list(brown_names)
+    J_theta[:, :, 0] += np.einsum("nij,nj->ni", dJ["xp"], e_out)
+    J_theta[:, :, 1] += np.einsum("nij,nj->ni", dJ["yp"], e_out)
+    for t in PA_TERMS:
+        if t in coeffs:
+            J_theta[:, :, b0 + names.index(t)] += np.einsum("nij,nj->ni", dJ[t], e_out)
+    J_theta = np.einsum("nij,njk->nik", A_inv, J_theta)
+    J_pc = np.einsum("nij,njk->nik", A_inv, J_pc)
+    return e_out, J_theta, J_pc
+
+
+#: the decentering and affinity terms, whose part of ``I - d brown / d uv`` is undone in
+#: :func:`sphere_residual`
+PA_TERMS = ("p1", "p2", "a1", "a2")
+
+
+def _has_pa(coeffs: dict) -> bool:
+    return any(t in coeffs for t in PA_TERMS)
+
+
+def decentering_affinity_matrix(
+    xbar_px: np.ndarray, brown: dict[str, float], scale_px: float
+) -> np.ndarray:
+    """``A = I - d brown_pa / d xbar`` (N, 2, 2): the decentering (``p1, p2``) and
+    affinity (``a1, a2``) part of the Brown map's ``I - d brown / d uv``.
+
+    Parameters
+    ----------
+    xbar_px : ndarray, shape (N, 2)
+        Measured (corrected) pixels minus the principal point.
+    brown : dict
+        Brown coefficients (missing terms are 0; the radial ``k1-k3`` are ignored).
+    scale_px : float
+        Brown normalisation radius.
+
+    Returns
+    -------
+    ndarray, shape (N, 2, 2)
+    """
+    x = xbar_px[:, 0] / scale_px
+    y = xbar_px[:, 1] / scale_px
+    p1, p2, a1, a2 = (float(brown.get(t, 0.0)) for t in PA_TERMS)
+    A = np.empty((len(x), 2, 2))
+    A[:, 0, 0] = 1.0 - (6 * p1 * x + 2 * p2 * y + a1)
+    A[:, 0, 1] = -(2 * p1 * y + 2 * p2 * x + a2)
+    A[:, 1, 0] = -(2 * p1 * y + 2 * p2 * x)
+    A[:, 1, 1] = 1.0 - (2 * p1 * x + 6 * p2 * y)
+    return A
+
+
+def _pa_matrix_derivatives(xbar_px, brown, scale_px) -> dict[str, np.ndarray]:
+    """Derivatives (N, 2, 2) of ``J_pa = I - A`` (:func:`decentering_affinity_matrix`) by
+    ``xp, yp`` (px; ``xbar = uv - pp``) and by ``p1, p2, a1, a2``."""
+    n = len(xbar_px)
+    x = xbar_px[:, 0] / scale_px
+    y = xbar_px[:, 1] / scale_px
+    p1, p2 = float(brown.get("p1", 0.0)), float(brown.get("p2", 0.0))
+    out = {
+        "p1": np.stack([np.stack([6 * x, 2 * y], -1), np.stack([2 * y, 2 * x], -1)], 1),
+        "p2": np.stack([np.stack([2 * y, 2 * x], -1), np.stack([2 * x, 6 * y], -1)], 1),
+        "a1": np.broadcast_to(np.array([[1.0, 0.0], [0.0, 0.0]]), (n, 2, 2)),
+        "a2": np.broadcast_to(np.array([[0.0, 1.0], [0.0, 0.0]]), (n, 2, 2)),
+    }
+    d_dx = np.array([[6 * p1, 2 * p2], [2 * p2, 2 * p1]]) / scale_px
+    d_dy = np.array([[2 * p2, 2 * p1], [2 * p1, 6 * p2]]) / scale_px
+    out["xp"] = np.broadcast_to(-d_dx, (n, 2, 2))
+    out["yp"] = np.broadcast_to(-d_dy, (n, 2, 2))
+    return out
 
 
 # -- the Brown map along a line of pixels through the principal point --------------------------
@@ -1067,19 +1158,22 @@ class SphereCamera:
     def pixel_residuals(
         self, uv_px: np.ndarray, ideal_residuals_px: np.ndarray, exact: bool = False
     ) -> np.ndarray:
-        """Residuals in raw pixels from residuals in corrected (ideal) coordinates.
+        """Residuals in raw pixels from the adjustment's residuals (:func:`sphere_residual`).
 
-        The adjustment's residual ``e = ideal_from_pixels(uv) - ideal(P)`` lives
-        in corrected coordinates; OpenCV-style statistics need ``uv - project(P)``.
-        To first order ``uv - project(P) = (I - d brown / d uv)^-1 e`` (the
-        learned field's gradient, well below 1 px/px, is neglected), which is
-        also what a strongly compressing Brown model at the rim amplifies.
+        The adjustment's residual is ``A^-1 e`` with ``e = ideal_from_pixels(uv) -
+        ideal(P)`` in corrected coordinates and ``A`` the decentering and affinity
+        part of ``I - d brown / d uv`` (:func:`decentering_affinity_matrix`);
+        OpenCV-style statistics need ``uv - project(P)``. To first order ``uv -
+        project(P) = (I - d brown / d uv)^-1 e`` (the learned field's gradient, well
+        below 1 px/px, is neglected), which is also what a strongly compressing Brown
+        model at the rim amplifies; with the radial mapping it is the adjustment's own.
 
         Parameters
         ----------
         uv_px : ndarray, shape (N, 2)
             Raw measurements.
         ideal_residuals_px : ndarray, shape (N, 2)
+            The adjustment's residuals (px).
 
         Returns
         -------
@@ -1090,9 +1184,10 @@ class SphereCamera:
         if not self.brown:
             return e.copy()
         corrected = uv if self.correction is None else uv - self._learned(uv, exact)
-        _, J, _ = brown_distortion(
-            corrected - self.principal_point_px, self.brown, self.brown_scale_px, jacobians=True
-        )
+        xbar = corrected - self.principal_point_px
+        A = decentering_affinity_matrix(xbar, self.brown, self.brown_scale_px)
+        e = np.einsum("nij,nj->ni", A, e)  # back to corrected coordinates
+        _, J, _ = brown_distortion(xbar, self.brown, self.brown_scale_px, jacobians=True)
         A = np.eye(2)[None] - J
         ok = np.abs(np.linalg.det(A)) > 1e-12
         out = np.full_like(e, np.nan)

@@ -385,13 +385,14 @@ def _truncated_costs(problem: BundleProblem, candidates: list[gtsam.Values]) -> 
     with 2 %) and the calibration wandered into a wrong, untrusted solution; the other
     start gives 0.95x the oracle's 3D error.
 
-    The residuals are raw pixels (:func:`raw_residuals_px`), not the adjustment's
-    corrected coordinates: least squares pulled by blunders can inflate the affinity
-    ``a1`` until the corrected residuals of half the images are half the noise (a
-    105 deg field-of-view object, 2 % blunders, the second target-prior round: ``a1``
-    0.59, principal point 500 px off, median residual 0.43 against the truth's 0.59 px,
-    so that start won, the robust stages slid on to sigma 0.2 px and the calibration
-    ended untrusted at 45x the oracle's 3D error).
+    The residuals are raw pixels (:func:`raw_residuals_px`). In corrected coordinates
+    (the adjustment's metric before :func:`~gtsam_sphere.core.camera.sphere_residual`
+    undid decentering and affinity), least squares pulled by blunders inflated the
+    affinity ``a1`` until the corrected residuals of half the images were half the
+    noise (a 105 deg field-of-view object, 2 % blunders, the second target-prior
+    round: ``a1`` 0.59, principal point 500 px off, median residual 0.43 against the
+    truth's 0.59 px), that start won, the robust stages slid on to sigma 0.2 px and
+    the calibration ended untrusted at 45x the oracle's 3D error.
     """
     r = [np.linalg.norm(raw_residuals_px(problem, v), axis=1) for v in candidates]
     sigma = min(robust_sigma_px(ri, 1e-9) for ri in r)
@@ -401,14 +402,14 @@ def _truncated_costs(problem: BundleProblem, candidates: list[gtsam.Values]) -> 
 
 
 def raw_residuals_px(problem: BundleProblem, values: gtsam.Values) -> np.ndarray:
-    """Residuals (N, 2) in raw pixels at ``values``: the adjustment's residuals, which live
-    in corrected coordinates, mapped by ``(I - d brown / d uv)^-1``
-    (:meth:`SphereCamera.pixel_residuals`; unchanged without Brown terms and where that
-    map is singular).
+    """Residuals (N, 2) in raw pixels at ``values``: the adjustment's residuals mapped
+    by :meth:`SphereCamera.pixel_residuals` (the same with the radial mapping, whose
+    Brown terms ``p1 p2 a1 a2`` the residual already undoes; the radial ``k1-k3`` of
+    the Brown model mapped by ``(I - d brown / d uv)^-1``; unchanged where that map is
+    singular).
 
-    The adjustment's cost is measured after the decentering and affinity terms correct
-    the measurement, so a solution can shrink its cost by shrinking that metric; raw
-    pixels are the scale the noise has, and compare solutions fairly.
+    Raw pixels are the scale the noise has, and compare solutions fairly: in corrected
+    coordinates a solution can shrink its cost by shrinking the metric.
     """
     e = problem.residuals_px(values)
     if not problem.brown_names:
@@ -1768,9 +1769,9 @@ def _result(dataset, problem, adj, correction, history, options, n_input_images)
     pc = np.einsum("nij,nj->ni", R[dataset.obs_image], xyz[dataset.obs_target])
     pc += t[dataset.obs_image]
     inc = incidence_deg(pc)
-    # the adjustment's residuals live in corrected coordinates; statistics and files
-    # report raw pixels (OpenCV's definition); sigma, weights and outliers stay in the
-    # adjustment's own coordinates
+    # the adjustment's residuals keep the radial Brown terms' corrected coordinates
+    # (core.camera.sphere_residual); statistics and files report raw pixels (OpenCV's
+    # definition); sigma, weights and outliers stay in the adjustment's own coordinates
     res_model = adj.residuals_px
     res = camera.pixel_residuals(dataset.uv_px, res_model, exact=True)
     res = np.where(np.isfinite(res), res, res_model)
