@@ -280,14 +280,10 @@ def adjust(
         start = values if result is None else result.values
         sub = _inlier_problem(problem, first_stage_mask) if first_l2 else None
         if sub is not None and not first_stage_all:
-            sub_values, sub_ordering = _sub_values(sub, start)
-            n_out = len(problem.uv_px) - len(sub.uv_px)
             if progress:
+                n_out = len(problem.uv_px) - len(sub.uv_px)
                 progress(f"{label}stage 1 without {n_out} observations beyond 5 sigma")
-            result = optimize(sub.build(), sub_values, optimizer, sub_ordering, progress, label)
-            merged = gtsam.Values(start)
-            merged.update(result.values)
-            result.values = merged
+            result = _optimize_subset(sub, start, optimizer, progress, label)
             sub = None
         else:
             result = optimize(graph, start, optimizer, ordering, progress, label)
@@ -297,14 +293,10 @@ def adjust(
             # over *every* observation wins (_truncated_costs; 10% blunders: only the
             # second survives; a 300 deg sphere lens: the first, as RANSAC's hypotheses
             # stop at 90 deg)
-            sub_values, sub_ordering = _sub_values(sub, start)
-            n_out = len(problem.uv_px) - len(sub.uv_px)
             if progress:
+                n_out = len(problem.uv_px) - len(sub.uv_px)
                 progress(f"{label}stage 1 again without {n_out} observations RANSAC rejected")
-            alt = optimize(sub.build(), sub_values, optimizer, sub_ordering, progress, label)
-            merged = gtsam.Values(start)
-            merged.update(alt.values)
-            alt.values = merged
+            alt = _optimize_subset(sub, start, optimizer, progress, label)
             costs = _truncated_costs(problem, [result.values, alt.values])
             if progress:
                 progress(
@@ -440,6 +432,17 @@ def _inlier_problem(problem: BundleProblem, mask: np.ndarray | None) -> BundlePr
         )
     except ValueError:  # e.g. the control targets left no datum
         return None
+
+
+def _optimize_subset(sub: BundleProblem, start: gtsam.Values, optimizer, progress, label):
+    """Optimise the restricted problem ``sub`` from ``start``; the result's values hold
+    every variable of ``start`` (unchanged where ``sub`` has none)."""
+    sub_values, sub_ordering = _sub_values(sub, start)
+    out = optimize(sub.build(), sub_values, optimizer, sub_ordering, progress, label)
+    merged = gtsam.Values(start)
+    merged.update(out.values)
+    out.values = merged
+    return out
 
 
 def _sub_values(sub: BundleProblem, values: gtsam.Values):
