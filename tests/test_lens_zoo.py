@@ -374,8 +374,10 @@ def test_an_affinity_pulled_by_blunders_does_not_win_the_first_stage():
     blunders. Least squares on every observation inflated the affinity ``a1`` to 0.59
     and moved the principal point 500 px; in corrected coordinates that start fitted
     better than the clean one (median 0.43 against 0.59 px) and won, and the
-    calibration ended untrusted at 45x the oracle's 3D error after 290 s. In raw pixels
-    it loses by 4x in every round, and the re-adjustments no longer run it."""
+    calibration ended untrusted at 45x the oracle's 3D error after 290 s. Ranked in raw
+    pixels it lost by 4x; with the residual's decentering and affinity undone
+    (``sphere_residual``) it no longer gets that far and loses by 1.9x. The
+    re-adjustments no longer run it."""
     from gtsam_sphere.estimation.calibrate import calibrate
     from gtsam_sphere.io.dataset import parse_dataset
     from gtsam_sphere.simulate import simulate_room
@@ -387,7 +389,7 @@ def test_an_affinity_pulled_by_blunders_does_not_win_the_first_stage():
     ranked = [ln for ln in lines if ln.startswith("truncated cost of stage 1")]
     assert len(ranked) == 1, ranked  # only the first adjustment ranks two starts
     with_all, without = (float(v) for v in ranked[0].split(": ")[1].split(" / "))
-    assert without < 0.5 * with_all, ranked[0]
+    assert without < with_all, ranked[0]
     assert any(ln.startswith("stage 1 without") for ln in lines)  # the re-adjustments
     assert calib.statistics["trusted"], calib.statistics["distrust"]
     assert abs(calib.camera.c / ZOO._axis_scale_px(sim.lens) - 1.0) < 0.01
