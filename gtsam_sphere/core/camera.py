@@ -467,12 +467,12 @@ def sphere_residual(
     if not jacobians:
         m = ideal_projection(points_cam, radial, warp=warp)
         if brown_names:
-            e = xbar - brown_distortion(xbar, coeffs, scale_px) - c * m
-            if _has_pa(coeffs):
-                # as in the Jacobian branch, to the last bit
-                A_inv = np.linalg.inv(decentering_affinity_matrix(xbar, coeffs, scale_px))
-                return np.einsum("nij,nj->ni", A_inv, e)
-            return e
+            if not _has_pa(coeffs):
+                return xbar - brown_distortion(xbar, coeffs, scale_px) - c * m
+            # as in the Jacobian branch, to the last bit
+            delta, Jd, _ = brown_distortion(xbar, coeffs, scale_px, jacobians=True)
+            A_inv = np.linalg.inv(_pa_matrix(xbar, coeffs, scale_px, Jd))
+            return np.einsum("nij,nj->ni", A_inv, xbar - delta - c * m)
         return xbar - c * m
     m, J_m, J_r = ideal_projection(points_cam, radial, jacobians=True, warp=warp)
     n = len(m)
@@ -492,7 +492,7 @@ def sphere_residual(
     if not _has_pa(coeffs):
         return e, J_theta, J_pc
     # e' = A^-1 e, A = I - J_pa: de' = A^-1 (de + dJ_pa e')
-    A_inv = np.linalg.inv(decentering_affinity_matrix(xbar, coeffs, scale_px))
+    A_inv = np.linalg.inv(_pa_matrix(xbar, coeffs, scale_px, Jd))
     e_out = np.einsum("nij,nj->ni", A_inv, e)
     dJ = _pa_matrix_derivatives(xbar, coeffs, scale_px)
     names = list(brown_names)
@@ -534,15 +534,16 @@ def decentering_affinity_matrix(
     -------
     ndarray, shape (N, 2, 2)
     """
-    x = xbar_px[:, 0] / scale_px
-    y = xbar_px[:, 1] / scale_px
-    p1, p2, a1, a2 = (float(brown.get(t, 0.0)) for t in PA_TERMS)
-    A = np.empty((len(x), 2, 2))
-    A[:, 0, 0] = 1.0 - (6 * p1 * x + 2 * p2 * y + a1)
-    A[:, 0, 1] = -(2 * p1 * y + 2 * p2 * x + a2)
-    A[:, 1, 0] = -(2 * p1 * y + 2 * p2 * x)
-    A[:, 1, 1] = 1.0 - (2 * p1 * x + 6 * p2 * y)
-    return A
+    return _pa_matrix(np.asarray(xbar_px, float), brown, scale_px)
+
+
+def _pa_matrix(xbar_px, brown, scale_px, J_brown=None) -> np.ndarray:
+    """:func:`decentering_affinity_matrix`, from ``J_brown = d brown / d xbar`` (N, 2, 2)
+    of the same coefficients when they hold no radial term (then it is all of it)."""
+    if J_brown is None or any(t in brown for t in ("k1", "k2", "k3")):
+        pa = {t: brown[t] for t in PA_TERMS if t in brown}
+        J_brown = brown_distortion(xbar_px, pa, scale_px, jacobians=True)[1]
+    return np.eye(2)[None] - J_brown
 
 
 def _pa_matrix_derivatives(xbar_px, brown, scale_px) -> dict[str, np.ndarray]:

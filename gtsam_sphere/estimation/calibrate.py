@@ -404,8 +404,8 @@ def raw_residuals_px(problem: BundleProblem, values: gtsam.Values) -> np.ndarray
     coordinates a solution can shrink its cost by shrinking the metric.
     """
     e = problem.residuals_px(values)
-    if not problem.brown_names:
-        return e
+    if not any(t in problem.brown_names for t in ("k1", "k2", "k3")):
+        return e  # the residual is already in raw pixels (to first order)
     key = problem.intrinsics_key
     theta = values.atVector(key) if values.exists(key) else problem.fixed_intrinsics
     size = int(np.ceil(2.0 * problem.brown_scale_px))
