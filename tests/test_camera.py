@@ -308,3 +308,44 @@ def test_sphere_residual_jacobians_with_strong_decentering_and_affinity(radial):
     corrected = e0 - brown_distortion(xbar, aff, 500.0)
     np.testing.assert_allclose(e_aff[:, 1], corrected[:, 1], rtol=1e-12)
     np.testing.assert_allclose(e_aff[:, 0], (corrected[:, 0] - 0.1 * corrected[:, 1]) / 0.7)
+
+
+class _Smooth:
+    """A smooth learned correction (px) for the metric test."""
+
+    def predict(self, uv_px):
+        uv = np.asarray(uv_px, float)
+        return np.column_stack([0.6 * np.sin(uv[:, 1] / 170.0), 0.4 * np.cos(uv[:, 0] / 230.0)])
+
+
+def test_measurement_metric_reproduces_the_adjustments_residual():
+    """``M (ideal_from_pixels(uv) - ideal(P))`` (the frozen factors' and resection's
+    residual) equals the adjustment's :func:`sphere_residual` on the learned-corrected
+    pixels; None without decentering and affinity terms, NaN where ``A`` is singular."""
+    rng = np.random.default_rng(5)
+    cam = SphereCamera(
+        width=1280,
+        height=960,
+        xp=652.0,
+        yp=471.0,
+        c=340.0,
+        brown={"k1": 0.02, "p1": 0.01, "p2": -0.02, "a1": 0.3, "a2": -0.1},
+    )
+    cam.correction = _Smooth()
+    uv = rng.uniform(50.0, 1230.0, (40, 2))
+    pc = rng.normal(size=(40, 3)) + [0.0, 0.0, 2.0]
+    theta, names = _theta(cam)
+    corrected = uv - cam.correction.predict(uv)
+    expected = sphere_residual(theta, names, cam.brown_scale_px, corrected, pc)
+    M = cam.measurement_metric(uv, exact=True)
+    assert M.shape == (40, 2, 2)
+    e = cam.ideal_from_pixels(uv, exact=True) - cam.ideal_from_points(pc)
+    np.testing.assert_allclose(np.einsum("nij,nj->ni", M, e), expected, rtol=1e-10, atol=1e-10)
+    assert (
+        SphereCamera(
+            width=100, height=100, xp=50, yp=50, c=40.0, brown={"k1": 0.1}
+        ).measurement_metric(uv)
+        is None
+    )
+    folded = SphereCamera(width=100, height=100, xp=50, yp=50, c=40.0, brown={"a1": 1.0})
+    assert np.isnan(folded.measurement_metric(uv)).all()

@@ -129,10 +129,33 @@ def test_projection_factor_jacobians_match_numerical(mapping, direction):
     scale = np.abs(A).max()
     np.testing.assert_allclose(A[:, :6], n_pose, atol=1e-6 * scale)
     np.testing.assert_allclose(A[:, 6:], n_point, atol=1e-6 * scale)
-    # residual: corrected measurement minus the model, px
+    # residual: corrected measurement minus the model, px, in the adjustment's metric
     pc = pose.transformTo(point)
     e = camera.ideal_from_pixels(uv)[0] - camera.ideal_from_points(pc[None])[0]
-    np.testing.assert_allclose(factor.unwhitenedError(values), e, atol=1e-9)
+    M_ = camera.measurement_metric(uv)[0]
+    np.testing.assert_allclose(factor.unwhitenedError(values), M_ @ e, atol=1e-9)
+
+
+def test_frozen_residual_is_in_raw_pixels_under_a_strong_affinity():
+    """The frozen factor weighs as the adjustment: raw pixels, not the affinity's metric.
+
+    With ``a1 = 0.3`` the corrected coordinates shrink x by 0.7; a 0.5 px offset of
+    the raw pixel must come back as 0.5 px (to first order), so that the calibration's
+    ``sigma_px`` means the same in a user's graph.
+    """
+    camera = _affine_radial()
+    offset = np.array([0.5, -0.4])
+    pose, point, uv, values = _one(camera, [0.4, -0.3, 1.0], offset=offset)
+    factor = make_projection_factor(camera, uv, pose_key(0), point_key(0), NOISE["isotropic"])
+    np.testing.assert_allclose(factor.unwhitenedError(values), offset, atol=5e-3)
+    old = (
+        camera.ideal_from_pixels(uv)[0] - camera.ideal_from_points(pose.transformTo(point)[None])[0]
+    )
+    assert abs(old[0] - offset[0]) > 0.1  # the corrected coordinates are off by ~30 %
+    block = ProjectionBlocks(camera, uv, [pose_key(0)], [point_key(0)], NOISE["isotropic"])
+    np.testing.assert_allclose(
+        block.residuals_px(values)[0], factor.unwhitenedError(values), atol=1e-12
+    )
 
 
 @pytest.mark.parametrize("direction", list(DIRECTIONS))
@@ -360,12 +383,24 @@ def test_bearing_noise_from_pixel_noise():
     sig = bearing_sigma_rad(equidistant, uv, 0.6)
     assert sig[0] == pytest.approx(0.6 / c)
     np.testing.assert_allclose(sig, 0.6 / np.sqrt(tang * c), rtol=1e-9)
+    # an affinity stretches the pixel path's metric by 1 / (1 - a1) in x (on the axis)
+    equidistant.brown = {"a1": 0.36}
+    sig = bearing_sigma_rad(equidistant, equidistant.project(rays[:1]), 0.6)
+    assert sig[0] == pytest.approx(0.6 * np.sqrt(1 - 0.36) / c)
 
 
-def test_sqrt_information_reproduces_pixel_weighting():
+def _affine_radial():
+    camera = fisheye_camera(200.0)
+    camera.brown = {"a1": 0.3, "a2": -0.05, "p1": 0.01, "p2": -0.02}
+    return camera
+
+
+@pytest.mark.parametrize("mapping", ["radial", "radial, strong affinity"])
+def test_sqrt_information_reproduces_pixel_weighting(mapping):
     """GeneralSFMFactorSphericalCamera with bearing_sqrt_information: whitened error equals
-    the pixel residual / sigma to first order, anisotropy included (fisheye at 80 deg)."""
-    camera = CAMERAS["radial"]
+    the pixel residual / sigma to first order, anisotropy included (fisheye at 80 deg), and
+    with the frozen factor's metric under a strong affinity."""
+    camera = CAMERAS["radial"] if mapping == "radial" else _affine_radial()
     rng = np.random.default_rng(3)
     for direction in ([0.1, 0.05, 1.0], [1.0, 0.3, 0.2], [0.5, -1.0, -0.4]):
         pose, point, uv, values = _one(camera, direction, offset=rng.normal(scale=0.5, size=2))

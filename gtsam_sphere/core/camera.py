@@ -1156,6 +1156,46 @@ class SphereCamera:
         uv = check_uv(uv_px)
         return uv - self.principal_point_px - self.distortion_px(uv, exact)
 
+    def _brown_input(self, uv: np.ndarray, exact: bool = False) -> np.ndarray:
+        """Where the Brown terms act: the pixel less its learned correction, less the
+        principal point (N, 2) px."""
+        corrected = uv if self.correction is None else uv - self._learned(uv, exact)
+        return corrected - self.principal_point_px
+
+    def measurement_metric(self, uv_px: np.ndarray, exact: bool = False) -> np.ndarray | None:
+        """The adjustment's residual metric at raw pixels: ``M = A^-1`` (N, 2, 2) or None.
+
+        The adjustment weighs ``M (ideal_from_pixels(uv) - ideal(P))`` (px), with ``A``
+        the decentering and affinity part of ``I - d brown / d uv`` at the measurement
+        (:func:`decentering_affinity_matrix`, :func:`sphere_residual`): raw pixels to first
+        order with the radial mapping. A frozen calibration's factors and resections
+        use the same ``M``, constant per observation, so that the calibration's
+        ``sigma_px`` means the same there.
+
+        Parameters
+        ----------
+        uv_px : ndarray, shape (N, 2)
+            Raw measured pixels.
+        exact : bool
+            The learned correction itself rather than its table.
+
+        Returns
+        -------
+        ndarray, shape (N, 2, 2), or None
+            None when the calibration has no ``p1, p2, a1, a2`` (``M = I``); NaN where
+            ``A`` is singular.
+        """
+        uv = check_uv(uv_px)
+        if not _has_pa(self.brown):
+            return None
+        A = decentering_affinity_matrix(
+            self._brown_input(uv, exact), self.brown, self.brown_scale_px
+        )
+        det = A[:, 0, 0] * A[:, 1, 1] - A[:, 0, 1] * A[:, 1, 0]
+        det = np.where(np.abs(det) > 1e-12, det, np.nan)  # a fold of the affinity: no metric
+        adj = np.stack([A[:, 1, 1], -A[:, 0, 1], -A[:, 1, 0], A[:, 0, 0]], 1).reshape(-1, 2, 2)
+        return adj / det[:, None, None]
+
     def pixel_residuals(
         self, uv_px: np.ndarray, ideal_residuals_px: np.ndarray, exact: bool = False
     ) -> np.ndarray:
@@ -1184,8 +1224,7 @@ class SphereCamera:
         e = check_uv(ideal_residuals_px, "ideal_residuals_px")
         if not self.brown:
             return e.copy()
-        corrected = uv if self.correction is None else uv - self._learned(uv, exact)
-        xbar = corrected - self.principal_point_px
+        xbar = self._brown_input(uv, exact)
         A = decentering_affinity_matrix(xbar, self.brown, self.brown_scale_px)
         e = np.einsum("nij,nj->ni", A, e)  # back to corrected coordinates
         _, J, _ = brown_distortion(xbar, self.brown, self.brown_scale_px, jacobians=True)

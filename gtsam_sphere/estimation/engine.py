@@ -383,27 +383,40 @@ class BundleMeasurement:
 
 
 class FrozenMeasurement:
-    """A frozen calibration's measurement model: ``e = ideal_px - camera.ideal_from_points(P)``.
+    """A frozen calibration's measurement model: ``e = M (ideal_px - camera.ideal_from_points(P))``.
+
+    ``M`` is the calibration's residual metric at each measurement
+    (:meth:`~gtsam_sphere.core.camera.SphereCamera.measurement_metric`, constant per
+    observation): the residual is weighed as in the adjustment that made the
+    calibration, so its ``sigma_px`` applies unchanged.
 
     Parameters
     ----------
     camera : SphereCamera
     ideal_px : ndarray, shape (N, 2)
         Corrected measurements ``camera.ideal_from_pixels(uv)`` (px).
+    metric : ndarray, shape (N, 2, 2), or None
+        ``M`` per observation; None: the identity.
     """
 
     n_theta = 0
 
-    def __init__(self, camera, ideal_px):
+    def __init__(self, camera, ideal_px, metric=None):
         self.camera = camera
         self.ideal_px = np.asarray(ideal_px, float)
+        self.metric = None if metric is None else np.asarray(metric, float)
 
     def __call__(self, pc: np.ndarray, theta, rows, jacobians: bool):
         """``e`` (m, 2) px and, with ``jacobians``, None and ``de/dpc`` (m, 2, 3)."""
+        M = None if self.metric is None else self.metric[rows]
         if not jacobians:
-            return self.ideal_px[rows] - self.camera.ideal_from_points(pc.T), None, None
+            e = self.ideal_px[rows] - self.camera.ideal_from_points(pc.T)
+            return (e if M is None else np.einsum("nij,nj->ni", M, e)), None, None
         pred, J = self.camera.ideal_from_points(pc.T, jacobians=True)
-        return self.ideal_px[rows] - pred, None, -J
+        e = self.ideal_px[rows] - pred
+        if M is None:
+            return e, None, -J
+        return np.einsum("nij,nj->ni", M, e), None, -np.einsum("nij,njk->nik", M, J)
 
 
 class ProjectionModel:

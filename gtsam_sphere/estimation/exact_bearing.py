@@ -18,20 +18,21 @@ the gnomonic coordinates ``t = (b1 . P, b2 . P) / (m . P)`` (dimensionless,
 ``tan`` of the angles off ``m``), which is ``0`` on the measured ray and equal to
 the tangent-plane displacement of the predicted ray to first order.
 
-**Noise on the tangent plane.** The pixel path's residual
-(``ideal_from_pixels(uv) - ideal_from_points(P)``, px of the ideal image, see
-``docs/conventions.md``) changes with ``t`` as ``d ideal = J B dt`` with ``J`` (2 x 3,
-px per unit) the model's ``d ideal / d P`` at ``m``. A pixel noise of square-root
-information ``S_px`` (2 x 2, 1/px) is therefore ``A = S_px J B`` (2 x 2, 1/rad) on
-``t``. Its QR factorisation ``A = Q U`` (``U`` upper triangular, positive diagonal)
-gives ``|A t| = |U t|``, so ``U`` becomes the virtual camera's calibration
-``gtsam.Cal3_S2(fx=U00, fy=U11, s=U01, u0=0, v0=0)``, the measurement is ``(0, 0)``
-and the noise model is ``gtsam.noiseModel.Unit`` (or ``Robust`` around it: the
-M-estimator then acts on the same whitened norm, in sigmas, as on the pixel
-path). The factor is ``gtsam.GenericProjectionFactorCal3_S2`` with
-``body_P_sensor = body_from_cam * Pose3(R_v, 0)``: the pose variable is
-``world_from_body`` (``world_from_cam`` for a single camera, ``body = cam``), so
-the rig case is the same factor with a fixed ``body_from_cam`` per camera.
+**Noise on the tangent plane.** The pixel path's residual (``M (ideal_from_pixels(uv) -
+ideal_from_points(P))``, px, with ``M`` the calibration's residual metric,
+:meth:`~gtsam_sphere.core.camera.SphereCamera.measurement_metric`, the identity without
+decentering and affinity terms; see ``docs/conventions.md``) changes with ``t`` as ``d e
+= -M J B dt`` with ``J`` (2 x 3, px per unit) the model's ``d ideal / d P`` at ``m``. A
+pixel noise of square-root information ``S_px`` (2 x 2, 1/px) is therefore ``A = S_px M
+J B`` (2 x 2, 1/rad) on ``t``. Its QR factorisation ``A = Q U`` (``U`` upper triangular,
+positive diagonal) gives ``|A t| = |U t|``, so ``U`` becomes the virtual camera's
+calibration ``gtsam.Cal3_S2(fx=U00, fy=U11, s=U01, u0=0, v0=0)``, the measurement is
+``(0, 0)`` and the noise model is ``gtsam.noiseModel.Unit`` (or ``Robust`` around it:
+the M-estimator then acts on the same whitened norm, in sigmas, as on the pixel path).
+The factor is ``gtsam.GenericProjectionFactorCal3_S2`` with ``body_P_sensor =
+body_from_cam * Pose3(R_v, 0)``: the pose variable is ``world_from_body``
+(``world_from_cam`` for a single camera, ``body = cam``), so the rig case is the same
+factor with a fixed ``body_from_cam`` per camera.
 
 Exact means: the whitened error equals the pixel path's whitened error to first
 order at the measured ray (equal information matrices there, tested), and its
@@ -47,8 +48,8 @@ The same virtual cameras give a landmark-free variant:
 one virtual camera per observation in its ``CameraSet``; smart factors need an
 isotropic noise, which the whitened form provides).
 
-Pixel noise convention: by default the noise is that of the ideal (corrected)
-image coordinates, as on the pixel path
+Pixel noise convention: by default the noise is that of the pixel path's
+residual (``M`` times the ideal coordinates), as on the pixel path
 (:class:`~gtsam_sphere.estimation.external.ProjectionBlocks`), so that both
 paths weight alike. With ``raw_pixels=True`` it is the noise of the raw
 measured pixels, carried through the measurement corrections' Jacobian ``D = d
@@ -187,7 +188,8 @@ class ExactBearings:
     valid : ndarray of bool, shape (n,)
         Pixels with a ray and a finite, non-degenerate metric.
     sqrt_information : ndarray, shape (n, 2, 2)
-        ``A = S_px J B`` (1/rad), tangent basis = the first two columns of ``cam_R_virtual``.
+        ``A = S_px M J B`` (1/rad; ``S_px D^-1 J B`` with ``raw_pixels``), tangent
+        basis = the first two columns of ``cam_R_virtual``.
     calibration_upper : ndarray, shape (n, 2, 2)
         ``U`` with ``U^T U = A^T A``: the virtual cameras' ``Cal3_S2``.
     cam_R_virtual : ndarray, shape (n, 3, 3)
@@ -208,12 +210,17 @@ class ExactBearings:
         uv = check_uv(uv_px)
         n = len(uv)
         S, self.mestimator = _pixel_sqrt_information(pixel_noise, n)
+        camera = camera_of(calibration_or_camera)
         if raw_pixels:
-            D = _measurement_jacobian(camera_of(calibration_or_camera), uv)
+            D = _measurement_jacobian(camera, uv)
             ok_d = np.isfinite(D).all((1, 2)) & (np.abs(np.linalg.det(D)) > 1e-12)
             D[~ok_d] = np.eye(2)
             S = S @ np.linalg.inv(D)
             S[~ok_d] = np.nan
+        else:
+            metric = camera.measurement_metric(uv)  # the pixel path's M
+            if metric is not None:
+                S = S @ metric
         self.rays = bearings(calibration_or_camera, uv, hemisphere)
         ok = np.isfinite(self.rays).all(1)
         safe = np.where(ok[:, None], self.rays, [0.0, 0.0, 1.0])

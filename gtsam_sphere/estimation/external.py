@@ -8,14 +8,17 @@ into a graph whose variables are GTSAM camera poses ``world_from_cam``
 **Frozen pixel factor** (:func:`make_projection_factor`, :func:`make_projection_block`,
 :class:`ProjectionBlocks`). The residual is in pixels of the ideal image,
 
-    e = camera.ideal_from_pixels(uv_measured) - camera.ideal_from_points(R_wc^T (p_w - t_wc))
+    e = M (camera.ideal_from_pixels(uv_measured) - camera.ideal_from_points(R_wc^T (p_w - t_wc)))
 
 i.e. the calibration's own measurement model (paper Eq. 1-5): the Brown terms
 and the learned kNN correction act on the measurement and are applied once,
 at construction; the spherical or radial mapping is evaluated at the current
-estimate. Jacobians are analytic (right perturbation ``world_from_cam *
-Exp([omega, v])``, rotation first, like GTSAM's own camera factors). Any
-``gtsam.noiseModel`` works: the single-observation factor hands it to GTSAM
+estimate. ``M`` (2x2, constant per observation, the identity without
+decentering and affinity terms) is the adjustment's own residual metric
+(:meth:`~gtsam_sphere.core.camera.SphereCamera.measurement_metric`), so the
+calibration's ``sigma_px`` applies as it is. Jacobians are analytic (right
+perturbation ``world_from_cam * Exp([omega, v])``, rotation first, like GTSAM's own
+camera factors). Any ``gtsam.noiseModel`` works: the single-observation factor hands it to GTSAM
 unchanged; the vectorised block applies its whitening (any Gaussian model) and
 its M-estimator per observation, exactly as a ``gtsam.noiseModel.Robust``
 single-observation factor would. Use it when pixel-space weighting must be
@@ -91,9 +94,11 @@ __all__ = [
 # --------------------------------------------------------------------------- pixel factors
 
 
-def _frozen_model(camera: SphereCamera, ideal_px: np.ndarray) -> ProjectionModel:
+def _frozen_model(
+    camera: SphereCamera, ideal_px: np.ndarray, metric: np.ndarray | None
+) -> ProjectionModel:
     """The engine's projection model with the calibration frozen (no intrinsics key)."""
-    return ProjectionModel(FrozenMeasurement(camera, ideal_px))
+    return ProjectionModel(FrozenMeasurement(camera, ideal_px, metric))
 
 
 def make_projection_factor(
@@ -106,8 +111,10 @@ def make_projection_factor(
     """One observation with a frozen calibration, as a ``gtsam.CustomFactor``.
 
     Residual (px, ideal image, relative to the principal point):
-    ``camera.ideal_from_pixels(uv_px) - camera.ideal_from_points(R_wc^T (p_w - t_wc))``;
-    the measurement side (Brown terms, learned correction) is evaluated once, here.
+    ``M (camera.ideal_from_pixels(uv_px) - camera.ideal_from_points(R_wc^T (p_w - t_wc)))``
+    with ``M = camera.measurement_metric(uv_px)`` (the adjustment's metric; the
+    identity without decentering and affinity terms); the measurement side (Brown
+    terms, learned correction, ``M``) is evaluated once, here.
     The residual and Jacobians are those of the factor engine's projection model
     (:class:`~gtsam_sphere.estimation.engine.ProjectionModel`); the noise model is
     GTSAM's.
@@ -138,10 +145,11 @@ def make_projection_factor(
     if len(uv) != 1:
         raise ValueError(f"make_projection_factor takes one pixel, got {len(uv)}")
     ideal = camera.ideal_from_pixels(uv)
-    if not np.all(np.isfinite(ideal)):
+    metric = camera.measurement_metric(uv)
+    if not (np.all(np.isfinite(ideal)) and (metric is None or np.all(np.isfinite(metric)))):
         raise ValueError(f"pixel {uv[0].tolist()} has no finite corrected coordinates")
     pk, lk = int(pose_key), int(point_key)
-    model = _frozen_model(camera, ideal)
+    model = _frozen_model(camera, ideal, metric)
     index = [np.zeros(1, np.intp), np.zeros(1, np.intp)]
     one = np.ones(1)
 
@@ -241,7 +249,11 @@ class ProjectionBlocks:
         pk = check_keys(pose_keys, n, "pose_keys")
         lk = check_keys(point_keys, n, "point_keys")
         self.ideal_px = self.camera.ideal_from_pixels(uv)
-        bad = np.flatnonzero(~np.isfinite(self.ideal_px).all(1))
+        metric = self.camera.measurement_metric(uv)
+        finite = np.isfinite(self.ideal_px).all(1)
+        if metric is not None:
+            finite &= np.isfinite(metric).all((1, 2))
+        bad = np.flatnonzero(~finite)
         if len(bad):
             raise ValueError(f"observations {bad[:5].tolist()} have no finite corrected pixel")
         self.whitener = Whitener.from_noise_model(noise_model)
@@ -266,7 +278,9 @@ class ProjectionBlocks:
             counts.append(np.bincount(bb[new], minlength=len(sizes)))
             keys.append(kb[new].astype(np.int64))
             local.append(slot)
-        model = _frozen_model(self.camera, self.ideal_px[order])
+        model = _frozen_model(
+            self.camera, self.ideal_px[order], None if metric is None else metric[order]
+        )
         self.engine = FactorEngine(
             model, sizes, np.column_stack(counts), keys, local, self.whitener
         )
@@ -297,8 +311,8 @@ class ProjectionBlocks:
         Returns
         -------
         e_px : ndarray, shape (N, 2)
-            ``ideal_from_pixels(uv) - ideal_from_points(P_cam)`` in pixels of
-            the ideal image, input order.
+            ``M (ideal_from_pixels(uv) - ideal_from_points(P_cam))`` in pixels of
+            the ideal image (``M = camera.measurement_metric(uv)``), input order.
         """
         out = np.empty((self.n, 2))
         out[self._order] = self.engine.residuals_px(values)
@@ -435,7 +449,9 @@ def bearing_sigma_rad(
     """Isotropic angular standard deviation of the bearings of pixels.
 
     ``sigma_rad = sigma_px / sqrt(s_max * s_min)`` with the local scales of
-    :func:`model_scale_px_per_rad` at the measured ray: the angular sigma of
+    :func:`model_scale_px_per_rad` at the measured ray (times the calibration's
+    residual metric ``M``, :meth:`~gtsam_sphere.core.camera.SphereCamera.measurement_metric`,
+    where it has decentering or affinity terms): the angular sigma of
     an isotropic pixel noise, averaged (geometrically) over the two tangent
     directions. Exact where the model is locally conformal (the optical axis;
     the tangential and radial scales differ elsewhere, see
@@ -459,9 +475,18 @@ def bearing_sigma_rad(
     """
     rays = bearings(calibration_or_camera, uv_px, hemisphere)
     out = np.full(len(rays), np.nan)
+    camera = camera_of(calibration_or_camera)
+    metric = camera.measurement_metric(check_uv(uv_px))
     ok = np.isfinite(rays).all(1)
+    if metric is not None:
+        ok &= np.isfinite(metric).all((1, 2))
     if ok.any():
-        s = model_scale_px_per_rad(calibration_or_camera, rays[ok])
+        if metric is None:
+            s = model_scale_px_per_rad(camera, rays[ok])
+        else:
+            _, J = camera.ideal_from_points(rays[ok], jacobians=True)
+            MJB = metric[ok] @ J @ _tangent_basis(rays[ok])
+            s = np.linalg.svd(MJB, compute_uv=False)
         with np.errstate(divide="ignore"):
             out[ok] = float(sigma_px) / np.sqrt(s[:, 0] * s[:, 1])
     return out
@@ -474,10 +499,13 @@ def bearing_sqrt_information(
 
     For ``gtsam.GeneralSFMFactorSphericalCamera`` (error
     ``measured.errorVector(predicted)`` in the measured ray's ``gtsam.Unit3``
-    basis ``B``): ``R = S_px @ J(ray) @ B`` with ``J`` the model's ``d ideal /
-    d P`` at the measured ray and ``S_px`` the pixel noise's square-root
-    information, so ``|R @ error| = |S_px @ e_px|`` to first order in the
-    error. Use ``gtsam.noiseModel.Gaussian.SqrtInformation(R[k])``.
+    basis ``B``): ``R = S_px @ M @ J(ray) @ B`` with ``J`` the model's ``d ideal /
+    d P`` at the measured ray, ``M`` the calibration's residual metric at the pixel
+    (:meth:`~gtsam_sphere.core.camera.SphereCamera.measurement_metric`, the
+    identity without decentering and affinity terms) and ``S_px`` the pixel
+    noise's square-root information, so ``|R @ error| = |S_px @ e_px|`` (the
+    frozen pixel factor's residual) to first order in the error. Use
+    ``gtsam.noiseModel.Gaussian.SqrtInformation(R[k])``.
 
     Parameters
     ----------
@@ -496,13 +524,16 @@ def bearing_sqrt_information(
         Per observation, 1/rad; NaN where the pixel has no ray.
     """
     rays = bearings(calibration_or_camera, uv_px, hemisphere)
+    camera = camera_of(calibration_or_camera)
+    metric = camera.measurement_metric(check_uv(uv_px))
     S = np.asarray(sigma_px, float)
     S = np.eye(2) / float(S) if S.ndim == 0 else S
     out = np.full((len(rays), 2, 2), np.nan)
     ok = np.flatnonzero(np.isfinite(rays).all(1))
     if len(ok):
-        camera = camera_of(calibration_or_camera)
         _, J = camera.ideal_from_points(rays[ok], jacobians=True)
+        if metric is not None:
+            J = metric[ok] @ J
         B = np.array([gtsam.Unit3(rays[k]).basis() for k in ok])
         out[ok] = np.einsum("ab,nbc,ncd->nad", S, J, B)
     return out

@@ -16,9 +16,12 @@ Two steps:
 2. A robust Levenberg-Marquardt on the 6 pose parameters minimising the pixel
    residual of the collinearity condition (``docs/conventions.md``)::
 
-       e = ideal_from_pixels(uv) - ideal_from_points(R X + t)          (px)
+       e = M (ideal_from_pixels(uv) - ideal_from_points(R X + t))      (px)
 
-   with the analytic Jacobian of :meth:`.SphereCamera.ideal_from_points`,
+   with ``M`` the calibration's residual metric
+   (:meth:`.SphereCamera.measurement_metric`, the identity without decentering
+   and affinity terms), the analytic Jacobian of
+   :meth:`.SphereCamera.ideal_from_points`,
    Huber weights and a robust scale (``median(|e|) / sqrt(2 ln 2)``)
    re-estimated between stages, as in the bundle adjustment. The measurement
    corrections (Brown, kNN) are applied to the measurements once, so a learned
@@ -123,8 +126,11 @@ def _adjust_pose(
     min_sigma_px: float,
     max_iterations: int,
     max_stages: int = 6,
+    metric: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, float, int]:
     """Robust LM over the pose; returns ``R, t, sigma_px, iterations``.
+
+    ``metric``: ``M`` (N, 2, 2) of :meth:`.SphereCamera.measurement_metric` or None.
 
     The perturbation acts on the camera-frame point, ``p <- Exp(w) p + v``, so
     ``d p / d w = -[p]x`` and ``d p / d v = I``; the pose follows as
@@ -133,12 +139,12 @@ def _adjust_pose(
     usable = np.all(np.isfinite(ideal_meas), axis=1) & np.all(np.isfinite(xyz), axis=1)
     z = ideal_meas[usable]
     X = xyz[usable]
+    M = None if metric is None else metric[usable]
 
     def residual(R_, t_):
         p = X @ R_.T + t_
-        pred = camera.ideal_from_points(p)
-        e = z - pred
-        return p, e
+        e = z - camera.ideal_from_points(p)
+        return p, (e if M is None else np.einsum("nij,nj->ni", M, e))
 
     def cost_of(e, sigma):
         r = np.linalg.norm(e, axis=1) / sigma
@@ -154,6 +160,9 @@ def _adjust_pose(
         p = X @ R_.T + t_
         pred, J = camera.ideal_from_points(p, jacobians=True)
         e = z - pred
+        if M is not None:
+            e = np.einsum("nij,nj->ni", M, e)
+            J = np.einsum("nij,njk->nik", M, J)
         last["linearized"] = e
         r = np.linalg.norm(e, axis=1) / sigma
         ok = np.isfinite(r) & np.all(np.isfinite(J), axis=(1, 2))
@@ -297,6 +306,7 @@ def resect(
     n = len(uv)
     rng = np.random.default_rng(0) if rng is None else rng
     ideal_meas = camera.ideal_from_pixels(uv)
+    metric = camera.measurement_metric(uv)
     usable = np.all(np.isfinite(uv), axis=1) & np.all(np.isfinite(xyz), axis=1)
     if usable.sum() < 4:
         return _failure(n, f"only {int(usable.sum())} usable observations (need at least 4)")
@@ -338,11 +348,14 @@ def resect(
         loss_threshold,
         min_sigma_px,
         max_iterations,
+        metric=metric,
     )
     if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
         return _failure(n, "the pose adjustment diverged")
     p = xyz @ R.T + t
     e_ideal = ideal_meas - camera.ideal_from_points(p)
+    if metric is not None:
+        e_ideal = np.einsum("nij,nj->ni", metric, e_ideal)
     r_ideal = np.linalg.norm(e_ideal, axis=1)
     inliers = usable & np.isfinite(r_ideal) & (r_ideal <= outlier_sigmas * sigma)
     residuals = np.full((n, 2), np.nan)
