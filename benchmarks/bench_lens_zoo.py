@@ -278,7 +278,13 @@ STRESS_NOISE_PX = (0.1, 0.3, 0.5, 1.0, 1.5)
 STRESS_BLUNDERS = (0.0, 0.0, 0.02, 0.05)
 
 
-def build_stress_cases(seed: int, n: int) -> list[Case]:
+#: ``--defects``: sensor defects drawn for every stress case, uniform in +-these (the
+#: simulator's Brown/Chow Eq. 5 affinity ``a1``, shear ``a2`` and OpenCV decentering
+#: ``p1, p2`` on normalised coordinates); real cameras: ``a1`` up to a few percent
+STRESS_DEFECTS = {"a1": 0.03, "a2": 0.005, "p1": 5e-4, "p2": 5e-4}
+
+
+def build_stress_cases(seed: int, n: int, defects: bool = False) -> list[Case]:
     """``n`` random cases beyond the lists of :func:`build_cases` (same seed, same cases).
 
     Each draws a family of :data:`FAMILIES` and a field of view anywhere in its range
@@ -294,13 +300,18 @@ def build_stress_cases(seed: int, n: int) -> list[Case]:
         Seeds every draw.
     n : int
         Number of cases.
+    defects : bool
+        Also draw sensor defects (:data:`STRESS_DEFECTS`) for every case, from a
+        stream of their own: the other draws (and ids, but for a ``-d`` suffix) are
+        those without.
 
     Returns
     -------
     cases : list of Case
-        Ids ``sNN-family-fov-scene-WxH-noise-blunders``.
+        Ids ``sNN-family-fov-scene-WxH-noise-blunders[-d]``.
     """
     rng = np.random.default_rng([seed, 0x57E55])
+    defect_rng = np.random.default_rng([seed, 0xDEFEC7])
     cases: list[Case] = []
     families = list(FAMILIES)
     for i in range(n):
@@ -316,9 +327,16 @@ def build_stress_cases(seed: int, n: int) -> list[Case]:
         n_images = STRESS_IMAGES[int(rng.integers(len(STRESS_IMAGES)))]
         noise = STRESS_NOISE_PX[int(rng.integers(len(STRESS_NOISE_PX)))]
         blunders = STRESS_BLUNDERS[int(rng.integers(len(STRESS_BLUNDERS)))]
+        lens_options = _family_options(family, fov)
+        suffix = ""
+        if defects:
+            for name, bound in STRESS_DEFECTS.items():
+                lens_options[name] = round(float(defect_rng.uniform(-bound, bound)), 6)
+            suffix = "-d"
         cases.append(
             Case(
-                id=f"s{i:02d}-{family}-{fov:g}-{scene}-{width}x{height}-n{noise:g}-b{blunders:g}",
+                id=f"s{i:02d}-{family}-{fov:g}-{scene}-{width}x{height}-n{noise:g}-b{blunders:g}"
+                + suffix,
                 family=family,
                 fov_deg=fov,
                 width=width,
@@ -330,7 +348,7 @@ def build_stress_cases(seed: int, n: int) -> list[Case]:
                 pupil_shift_m=0.0,
                 error_field_px=0.0,
                 seed=int(rng.integers(1 << 30)),
-                lens_options=_family_options(family, fov),
+                lens_options=lens_options,
                 noise_px=noise,
                 blunder_rate=blunders,
             )
@@ -670,13 +688,24 @@ def main(argv: list[str] | None = None) -> int:
         metavar="N",
         help="N random cases beyond the list (sizes, noise, blunders, few images), from --seed",
     )
+    ap.add_argument(
+        "--defects",
+        action="store_true",
+        help="with --stress: sensor defects (affinity, shear, decentering) in every lens",
+    )
     ap.add_argument("--list", action="store_true", help="list the cases and exit")
     ap.add_argument("--json", default=None, metavar="OUT", help="save the rows as JSON")
     ap.add_argument("--verbose", action="store_true", help="echo calibration progress")
     ap.add_argument("--workdir", default=None, help="keep the simulated files here")
     args = ap.parse_args(argv)
 
-    cases = build_stress_cases(args.seed, args.stress) if args.stress else build_cases(args.seed)
+    if args.defects and not args.stress:
+        ap.error("--defects needs --stress N")
+    cases = (
+        build_stress_cases(args.seed, args.stress, args.defects)
+        if args.stress
+        else build_cases(args.seed)
+    )
     if args.quick:
         cases = quick_cases(cases)
     if args.only:

@@ -357,3 +357,30 @@ def test_circle_radius_for_sphere_past_180_is_the_disc():
     assert lens.f == 600.0 and lens.max_incidence_deg == pytest.approx(125.0)
     with pytest.raises(ValueError, match="circle_radius_px"):
         make_lens("equidistant", 180.0, W, H, circle_radius_px=0.0)
+
+
+def test_sphere_oracle_undoes_sensor_defects_in_the_image_plane():
+    """A sphere lens with affinity, shear and decentering: ``ideal_pixels`` are the
+    pixels of the same lens without them (front and back hemisphere alike), which is
+    what the oracle maps the measurements to (the sphere lens cannot be unprojected)."""
+    from dataclasses import dataclass
+    from dataclasses import replace as dc_replace
+
+    from gtsam_sphere.simulate.oracle import oracle_dataset
+
+    @dataclass
+    class _Measurements:  # the one field oracle_dataset reads and replaces
+        uv_px: np.ndarray
+
+    lens = make_lens("sphere", 250.0, W, H, a1=0.02, a2=-0.004, p1=4e-4, p2=-3e-4)
+    clean = dc_replace(lens, a1=0.0, a2=0.0, p1=0.0, p2=0.0)
+    rng = np.random.default_rng(2)
+    rays = rng.normal(size=(500, 3))
+    rays = rays[np.degrees(np.arccos(rays[:, 2] / np.linalg.norm(rays, axis=1))) < 124.0]
+    assert (rays[:, 2] < 0).sum() > 50  # behind the camera too
+    uv = lens.project(rays)
+    assert np.abs(uv - clean.project(rays)).max() > 1.0  # the defects move pixels
+    np.testing.assert_allclose(lens.ideal_pixels(uv), clean.project(rays), atol=1e-8)
+    ideal, model, fixed = oracle_dataset(_Measurements(uv), lens, lens.to_dict())
+    assert str(model) == "sphere" and fixed == (lens.cx, lens.cy, lens.f)
+    np.testing.assert_allclose(ideal.uv_px, clean.project(rays), atol=1e-8)

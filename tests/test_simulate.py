@@ -433,6 +433,15 @@ def test_lens_zoo_case_list_builds(monkeypatch):
         build_lens(c.options())
     quick = zoo.quick_cases(cases)
     assert 6 <= len(quick) <= 10 and {c.scene for c in quick} == {"room", "board", "object3d"}
+    # stress draws with sensor defects: the same draws otherwise, defects within bounds
+    plain, bent = zoo.build_stress_cases(205, 12), zoo.build_stress_cases(205, 12, defects=True)
+    assert [c.id + "-d" for c in plain] == [c.id for c in bent]
+    for p, b in zip(plain, bent):
+        extra = {k: v for k, v in b.lens_options.items() if k not in p.lens_options}
+        assert set(extra) == set(zoo.STRESS_DEFECTS)
+        assert all(abs(v) <= zoo.STRESS_DEFECTS[k] for k, v in extra.items())
+        assert (p.seed, p.noise_px, p.fov_deg) == (b.seed, b.noise_px, b.fov_deg)
+        build_lens(b.options())
 
 
 @pytest.mark.slow  # three end-to-end adjustments

@@ -266,6 +266,26 @@ class _CentralLens:
         mx = ((uv[:, 0] - self.cx) / self.f - self.a2 * my) / (1.0 + self.a1)
         return np.stack([mx, my], axis=1)
 
+    def ideal_pixels(self, uv_px: Any) -> np.ndarray:
+        """Pixels with the image-plane distortion undone: ``(cx, cy) + f * q``.
+
+        ``q`` are the normalised coordinates before the radial polynomial,
+        decentering and affinity (:meth:`unproject`'s first steps), so for a lens
+        without radial coefficients (the sphere lens) these are the pixels of the
+        same lens without sensor defects.
+
+        Parameters
+        ----------
+        uv_px : array_like, shape (N, 2)
+            Pixel coordinates (OpenCV convention).
+
+        Returns
+        -------
+        uv_ideal_px : ndarray, shape (N, 2)
+        """
+        q = self._undistort(self._px_to_normalised(_as_uv(uv_px)))
+        return np.array([self.cx, self.cy]) + self.f * q
+
     def project(self, points_cam: Any) -> np.ndarray:
         """Project camera-frame points to pixels.
 

@@ -35,7 +35,8 @@ def oracle_dataset(dataset: Dataset, lens, lens_desc: dict) -> tuple[Dataset, Mo
     and re-imaged by the ideal model ``pp + f * g(alpha) * direction``:
     equidistant (``g = alpha``) for every lens, or the sphere mapping for the
     sphere lens (whose two hemispheres share the image and cannot be
-    unprojected without knowing which). A non-central pupil stays unmodelled,
+    unprojected without knowing which; its decentering and affinity are undone
+    in the image plane). A non-central pupil stays unmodelled,
     as it is for every estimated model.
 
     Parameters
@@ -58,6 +59,11 @@ def oracle_dataset(dataset: Dataset, lens, lens_desc: dict) -> tuple[Dataset, Mo
     pp = np.array([lens.cx, lens.cy])
     if _base_kind(lens_desc) == "sphere":
         uv = lens.remove_field(dataset.uv_px) if hasattr(lens, "remove_field") else dataset.uv_px
+        central = lens
+        while hasattr(central, "lens"):  # the wrappers (error field, pupil) hold it
+            central = central.lens
+        if central.a1 or central.a2 or central.has_decentering:  # sensor defects
+            uv = central.ideal_pixels(uv)
         return replace(dataset, uv_px=np.asarray(uv, float)), Model.SPHERE, (*pp, lens.f)
     rays = lens.unproject(dataset.uv_px)
     rho = np.hypot(rays[:, 0], rays[:, 1])
