@@ -182,7 +182,11 @@ def grey_box_loop(problem, adj, optimizer, options, say: Callable[[str], None], 
     # mapping); on top of a parametric lens (radial, Brown) the field is small and smooth
     # and the plain average generalises better to new views (fish_1 leave-one-view-out:
     # 0.262 px plain, 0.271 px with the CV's choice), so it stays the paper's plain kNN
-    parametric = problem.radial_names is not None or bool(problem.brown_names)
+    # (decentering and affinity alone do not shape the mapping: the sphere fallback's
+    # field is the sphere mapping's, as without them)
+    parametric = problem.radial_names is not None or any(
+        t in ("k1", "k2", "k3") for t in problem.brown_names
+    )
     cfg = {
         "max_rounds": 25,
         "tolerance": 0.02,
