@@ -376,7 +376,10 @@ def _retry_branch(monkeypatch, alternative_trusted: bool):
         types.SimpleNamespace(warp_w=0.5, inlier_mask=np.ones(80, bool), alternatives=[]),
     ]
     first_init = types.SimpleNamespace(
-        warp_w=0.0, inlier_mask=np.r_[np.ones(60, bool), np.zeros(40, bool)], alternatives=alts
+        warp_w=0.0,
+        inlier_mask=np.r_[np.ones(60, bool), np.zeros(40, bool)],
+        alternatives=alts,
+        folded_alternative=None,
     )
     calls, lines = [], []
 
@@ -737,3 +740,66 @@ def test_a_folding_lens_with_sensor_defects_keeps_them_in_the_sphere_fallback():
     assert calib.camera.brown["a2"] == pytest.approx(0.002, abs=5e-4)
     assert abs(calib.camera.xp - sim.lens.cx) < 0.5 and abs(calib.camera.yp - sim.lens.cy) < 0.5
     assert calib.camera.c == pytest.approx(sim.lens.f, rel=1e-3)
+
+
+def test_an_untrusted_radial_result_tries_the_folded_lens_the_search_scored(monkeypatch):
+    """The radial run is not trusted, with more than ``OUTLIER_SHARE`` of its
+    observations beyond 5 sigma, and its mapping does not fold; the initialisation scored
+    a folded lens beside the fitted one: the sphere model runs from that lens's poses
+    (posed only now) and is kept when trusted. Without such a lens, or when the radial
+    result is not trusted for another reason (few outliers), nothing more runs."""
+    import gtsam_sphere.estimation.calibrate as cal_mod
+
+    folded_init = types.SimpleNamespace(alternatives=[], folded_alternative=None)
+    posed = []
+
+    def pose_folded():
+        posed.append(1)
+        return folded_init
+
+    def result(model, trusted, first_sigma_px, n_outliers):
+        return types.SimpleNamespace(
+            model=str(model),
+            statistics={
+                "trusted": trusted,
+                "converged": True,
+                "distrust": [] if trusted else ["why"],
+                "n_outliers": n_outliers,
+                "n_observations": 2877,
+                "first_sigma_px": first_sigma_px,
+                "knn_rounds": 2,
+            },
+        )
+
+    variants = ((pose_folded, 521, "brown+knn"), (None, 521, "radial+knn"))
+    variants += ((pose_folded, 20, "radial+knn"),)
+    for alternative, n_outliers, expected in variants:
+        calls = []
+        init = types.SimpleNamespace(alternatives=[], folded_alternative=alternative)
+
+        def fake_once(
+            dataset,
+            options,
+            progress,
+            init_in=None,
+            fold_probe=False,
+            init=init,
+            calls=calls,
+            n_outliers=n_outliers,
+        ):
+            calls.append((str(options.model), init_in))
+            if options.model.uses_radial:
+                return result(options.model, False, 2.3, n_outliers), init
+            return result(options.model, True, 1.0, 0), init_in
+
+        monkeypatch.setattr(cal_mod, "_calibrate_once", fake_once)
+        monkeypatch.setattr(cal_mod, "_folds_like_a_sphere", lambda calib: False)
+        posed.clear()
+        calib = calibrate(object(), CalibrationOptions())
+        assert calib.model == expected
+        if expected == "radial+knn":
+            assert [c[0] for c in calls] == ["radial+knn"] and posed == []
+        else:
+            assert [c[0] for c in calls] == ["radial+knn", "brown+knn"]
+            assert calls[1][1] is folded_init and posed == [1]
+            assert "the lens may fold" in calib.statistics["model_fallback"]

@@ -486,6 +486,10 @@ class InitialisationResult:
     disc: tuple | None = None
     tried: list[str] = field(default_factory=list)
     alternatives: list[InitialisationResult] = field(default_factory=list)
+    #: poses every image with the folded orthographic lens the search scored beside a
+    #: fitted (odd polynomial) one, on demand (None: no such lens); see
+    #: ``calibrate``'s use of :attr:`~.calibrate.Initialisation.folded_alternative`
+    pose_folded: Callable[[], InitialisationResult] | None = None
 
     @property
     def principal_point_px(self) -> np.ndarray:
@@ -1079,6 +1083,7 @@ def initialize_poses(
 
     # 4. refit the best hypotheses: principal point, then poses <-> radial polynomial
     ranked = []
+    folded_best = None  # (cost, hypothesis) of the folded lens beside a fitted one
     n_scored = sum(problem.scored_of_image[i].size for i in scoring)
     for k, (c_z, hyp, ro) in enumerate(_to_refit(zoomed)):
         needless = k and _second_refit_needless(ranked[0][0], c_z, hyp.mapping, n_scored)
@@ -1122,6 +1127,8 @@ def initialize_poses(
             if c_f < c_r:
                 say(f"folded: {h_f.describe()} (cost {c_f / thr**2:.4g})")
                 ranked.append((c_f / thr**2, h_f, h_f, ro))
+            if folded_best is None or c_f / thr**2 < folded_best[0]:
+                folded_best = (c_f / thr**2, h_f, ro)
     ranked.sort(key=lambda x: x[0])
     ranked += [(c, h, h, ro) for c, h, ro in zoomed[1:] if all(h is not r[1] for r in ranked)]
 
@@ -1173,6 +1180,18 @@ def initialize_poses(
                 for o in others
                 if o[3].sum() >= _MIN_INLIER_FRACTION * n_eligible_obs and o[2].any()
             ]
+            if folded_best is not None and not lens.folded:
+                chosen.pose_folded = _folded_poser(
+                    problem,
+                    eligible,
+                    folded_best,
+                    threshold_rad,
+                    threshold_px,
+                    image_seeds,
+                    min_inliers,
+                    failures,
+                    shared,
+                )
             return chosen
         why = f"{lens.describe()}: {100 * frac:.1f} % of the observations consistent"
         tried.append(why)
@@ -1185,6 +1204,32 @@ def initialize_poses(
         "size; a lens beyond the families tried (pinhole, stereographic, equidistant, "
         "equisolid, orthographic, field-of-view k = 4) may need a first guess."
     )
+
+
+def _folded_poser(
+    problem,
+    images,
+    folded_best,
+    threshold_rad,
+    threshold_px,
+    seeds,
+    min_inliers,
+    failures,
+    shared,
+):
+    """A callable posing every image with the folded lens of ``folded_best`` (cost,
+    hypothesis, observed radius) as the final pass would have: the
+    :class:`InitialisationResult` of that lens (poses turned to the front of the fold)."""
+    _, lens, ro = folded_best
+
+    def pose() -> InitialisationResult:
+        thr = max(0.01 * ro, threshold_rad * lens.f_px, threshold_px)
+        posed = _pose_all(problem, images, lens, thr, seeds, min_inliers)
+        rot, trans, ok, inlier_mask, _, _ = posed
+        _in_front_of_the_fold(problem, lens, rot, trans, ok, inlier_mask, thr, lambda _l: None)
+        return _result_of(posed, failures, **dict(shared, threshold_px=float(thr)))
+
+    return pose
 
 
 def _result_of(posed, failures: dict[int, str], **shared) -> InitialisationResult:
