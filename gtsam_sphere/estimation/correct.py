@@ -154,7 +154,12 @@ def grey_box_loop(problem, adj, optimizer, options, say: Callable[[str], None], 
 
     Stops when the RMS residual (of the training set of the round, in the
     previous and the new adjustment) and the CV score both change by less
-    than ``knn["tolerance"]`` (relative, default 2%) between rounds, or after
+    than ``knn["tolerance"]`` (relative, default 2%) between rounds, or when both
+    come back within it to those of the round before the previous one (a cycle of
+    two rounds: the training set flips between two choices, which further rounds only
+    repeat; a 46 deg pinhole room of 161 observations with 2 % blunders alternated 145
+    and 142 trained, CV RMS 0.0969 and 0.0902 px, for 25 rounds and was not trusted at
+    1.00x the oracle's 3D error), or after
     ``knn["max_rounds"]`` (default 25: with the sphere mapping the field
     is hundreds of pixels and the poses and ``c`` give up what they absorbed
     in the first adjustment over 10-20 rounds; a limit of 8 on top of a radial or
@@ -198,6 +203,7 @@ def grey_box_loop(problem, adj, optimizer, options, say: Callable[[str], None], 
     rms = _inlier_rms(adj)
     best = (rms, adj, None, problem.corrections_px.copy())
     prev_cv = None
+    figures: list[tuple[float, float]] = []  # (training RMS, CV RMS) of each round
     say(f"kNN round 0: RMS {rms:.4f} px within 5 sigma (no correction)")
     searches = NeighbourSearches()  # the rounds search the same pixels
     stable = False
@@ -235,14 +241,24 @@ def grey_box_loop(problem, adj, optimizer, options, say: Callable[[str], None], 
         )
         if rms < best[0]:
             best = (rms, adj, model, problem.corrections_px.copy())
-        stable_rms = abs(prev_rms - rms_train) <= cfg["tolerance"] * prev_rms
-        stable_cv = prev_cv is not None and abs(prev_cv - model.cv_rmse_px_) <= cfg[
-            "tolerance"
-        ] * max(prev_cv, 1e-12)
+        tol = cfg["tolerance"]
+        stable_rms = abs(prev_rms - rms_train) <= tol * prev_rms
+        stable_cv = prev_cv is not None and abs(prev_cv - model.cv_rmse_px_) <= tol * max(
+            prev_cv, 1e-12
+        )
         if stable_rms and stable_cv:
             say(f"kNN loop stable after {rnd} rounds")
             stable = True
             break
+        if len(figures) >= 2:
+            rms_2, cv_2 = figures[-2]
+            if abs(rms_2 - rms_train) <= tol * rms_2 and abs(cv_2 - model.cv_rmse_px_) <= tol * max(
+                cv_2, 1e-12
+            ):
+                say(f"kNN loop stable after {rnd} rounds (a cycle of two rounds)")
+                stable = True
+                break
+        figures.append((rms_train, model.cv_rmse_px_))
         prev_cv = model.cv_rmse_px_
     if not stable:
         say(f"kNN loop not stable after {cfg['max_rounds']} rounds: the best round is kept")
