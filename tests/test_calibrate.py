@@ -722,10 +722,14 @@ def test_the_sphere_fallback_keeps_the_affinity_terms():
 def test_a_folding_lens_with_sensor_defects_keeps_them_in_the_sphere_fallback():
     """A 220 deg orthographic lens whose sensor has an affinity (``a1 = 0.015``), shear
     and decentering: the sphere fallback estimates the affinity as the radial model
-    would, the decentering left to the kNN rounds (before,
-    the sphere model had none and its kNN rounds learned the affinity: a 203 deg board
-    of ``--stress 40 --seed 209 --defects`` was trusted at 4.9x the oracle's 3D error,
-    its principal point 8 px off)."""
+    would, the decentering left to the kNN rounds (before, the sphere model had neither
+    and its kNN rounds learned the affinity: a 203 deg board of ``--stress 40 --seed 209
+    --defects`` was trusted at 4.9x the oracle's 3D error, its principal point 8 px
+    off). The decentering left out moves the principal point by about 1 px here (it
+    trades off with it: up to 1.3 px of decentering at the rim), which the 3D result
+    does not feel: within 1.15x of the oracle's check-point error."""
+    from gtsam_sphere.simulate.oracle import oracle_calibration
+
     sim = simulate_room(
         SimulationOptions(
             lens="sphere",
@@ -741,8 +745,12 @@ def test_a_folding_lens_with_sensor_defects_keeps_them_in_the_sphere_fallback():
     assert calib.model == "brown+knn" and "model_fallback" in calib.statistics
     assert calib.camera.brown["a1"] == pytest.approx(0.015, abs=1e-3)
     assert calib.camera.brown["a2"] == pytest.approx(0.002, abs=5e-4)
-    assert abs(calib.camera.xp - sim.lens.cx) < 0.5 and abs(calib.camera.yp - sim.lens.cy) < 0.5
+    assert abs(calib.camera.xp - sim.lens.cx) < 2.0 and abs(calib.camera.yp - sim.lens.cy) < 2.0
     assert calib.camera.c == pytest.approx(sim.lens.f, rel=1e-3)
+    ids, xyz = checkpoints_of(sim)
+    ours = evaluate_calibration(calib, ids, xyz).rmse_3d
+    oracle = evaluate_calibration(oracle_calibration(sim), ids, xyz).rmse_3d
+    assert ours <= 1.15 * oracle, (ours, oracle)
 
 
 def test_an_untrusted_radial_result_tries_the_folded_lens_the_search_scored(monkeypatch):
