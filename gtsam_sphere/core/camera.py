@@ -509,6 +509,13 @@ def sphere_residual(
 #: the decentering and affinity terms, whose part of ``I - d brown / d uv`` is undone in
 #: :func:`sphere_residual`
 PA_TERMS = ("p1", "p2", "a1", "a2")
+#: the radial Brown terms, which stay in corrected coordinates (:func:`sphere_residual`)
+RADIAL_BROWN_TERMS = ("k1", "k2", "k3")
+
+
+def has_radial_brown(terms) -> bool:
+    """Whether ``terms`` (names, or a dict of coefficients) hold a radial Brown term."""
+    return any(t in terms for t in RADIAL_BROWN_TERMS)
 
 
 def _has_pa(coeffs: dict) -> bool:
@@ -540,7 +547,7 @@ def decentering_affinity_matrix(
 def _pa_matrix(xbar_px, brown, scale_px, J_brown=None) -> np.ndarray:
     """:func:`decentering_affinity_matrix`, from ``J_brown = d brown / d xbar`` (N, 2, 2)
     of the same coefficients when they hold no radial term (then it is all of it)."""
-    if J_brown is None or any(t in brown for t in ("k1", "k2", "k3")):
+    if J_brown is None or has_radial_brown(brown):
         pa = {t: brown[t] for t in PA_TERMS if t in brown}
         J_brown = brown_distortion(xbar_px, pa, scale_px, jacobians=True)[1]
     return np.eye(2)[None] - J_brown
@@ -875,7 +882,7 @@ class SphereCamera:
         """
         if not self.brown:
             return True
-        if self.radial is None or any(self.brown.get(t, 0.0) for t in ("k1", "k2", "k3")):
+        if self.radial is None or any(self.brown.get(t, 0.0) for t in RADIAL_BROWN_TERMS):
             return False
         reach = math.hypot(self.width, self.height) + 64.0
         return self._fold_free_radius() * self.brown_scale_px > reach

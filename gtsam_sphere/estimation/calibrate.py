@@ -22,6 +22,7 @@ from ..core.camera import (
     WARP_TERM,
     Model,
     SphereCamera,
+    has_radial_brown,
     parse_brown_terms,
     radial_g,
     radial_terms,
@@ -148,7 +149,7 @@ class CalibrationOptions:
             radial = self.model.uses_radial
             self.brown_terms = RADIAL_DEFAULT_TERMS if radial else BROWN_DEFAULT_TERMS
         self.brown_terms = tuple(self.brown_terms)
-        if self.model.uses_radial and any(t in ("k1", "k2", "k3") for t in self.brown_terms):
+        if self.model.uses_radial and has_radial_brown(self.brown_terms):
             raise ValueError(
                 f"model {self.model} estimates the radial mapping g; radial Brown terms "
                 f"{[t for t in self.brown_terms if t.startswith('k')]} would duplicate it: "
@@ -406,7 +407,7 @@ def raw_residuals_px(problem: BundleProblem, values: gtsam.Values) -> np.ndarray
     coordinates a solution can shrink its cost by shrinking the metric.
     """
     e = problem.residuals_px(values)
-    if not any(t in problem.brown_names for t in ("k1", "k2", "k3")):
+    if not has_radial_brown(problem.brown_names):
         return e  # the residual is already in raw pixels (to first order)
     key = problem.intrinsics_key
     theta = values.atVector(key) if values.exists(key) else problem.fixed_intrinsics
@@ -1106,7 +1107,7 @@ def calibrate(
     options = options or CalibrationOptions()
     say = progress or (lambda _line: None)
     fallback_options = sphere_fallback_options(options)
-    fallback = fallback_options.model  # sphere(+knn), or brown(+knn) with p1 p2 a1 a2
+    fallback = fallback_options.model  # sphere(+knn), or brown(+knn) with a1 a2
 
     def sphere_instead(
         reason: str, init: Initialisation, radial_sigma_px: float | None

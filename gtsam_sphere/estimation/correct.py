@@ -14,6 +14,7 @@ import numpy as np
 from sklearn.neighbors import NearestNeighbors
 
 # the correction model itself lives in the core (issue 14); re-exported here
+from ..core.camera import has_radial_brown
 from ..core.correction_model import DEGREES as DEGREES
 from ..core.correction_model import K_GRID as K_GRID
 from ..core.correction_model import WEIGHTS as WEIGHTS
@@ -31,6 +32,11 @@ def _inlier_rms(adj) -> float:
     r = np.linalg.norm(adj.residuals_px, axis=1)
     keep = r < 5.0 * adj.sigma_px
     return float(np.sqrt(np.mean(r[keep] ** 2))) if keep.any() else float(np.sqrt(np.mean(r**2)))
+
+
+def _close(old: float, new: float, tol: float) -> bool:
+    """``new`` within the relative tolerance ``tol`` of ``old`` (> 0)."""
+    return abs(old - new) <= tol * max(old, 1e-12)
 
 
 def _rms(residuals_px: np.ndarray, mask: np.ndarray) -> float:
@@ -189,9 +195,7 @@ def grey_box_loop(problem, adj, optimizer, options, say: Callable[[str], None], 
     # 0.262 px plain, 0.271 px with the CV's choice), so it stays the paper's plain kNN
     # (decentering and affinity alone do not shape the mapping: the sphere fallback's
     # field is the sphere mapping's, as without them)
-    parametric = problem.radial_names is not None or any(
-        t in ("k1", "k2", "k3") for t in problem.brown_names
-    )
+    parametric = problem.radial_names is not None or has_radial_brown(problem.brown_names)
     cfg = {
         "max_rounds": 25,
         "tolerance": 0.02,
@@ -242,19 +246,17 @@ def grey_box_loop(problem, adj, optimizer, options, say: Callable[[str], None], 
         if rms < best[0]:
             best = (rms, adj, model, problem.corrections_px.copy())
         tol = cfg["tolerance"]
-        stable_rms = abs(prev_rms - rms_train) <= tol * prev_rms
-        stable_cv = prev_cv is not None and abs(prev_cv - model.cv_rmse_px_) <= tol * max(
-            prev_cv, 1e-12
-        )
-        if stable_rms and stable_cv:
+        if (
+            prev_cv is not None
+            and _close(prev_rms, rms_train, tol)
+            and _close(prev_cv, model.cv_rmse_px_, tol)
+        ):
             say(f"kNN loop stable after {rnd} rounds")
             stable = True
             break
         if len(figures) >= 2:
             rms_2, cv_2 = figures[-2]
-            if abs(rms_2 - rms_train) <= tol * rms_2 and abs(cv_2 - model.cv_rmse_px_) <= tol * max(
-                cv_2, 1e-12
-            ):
+            if _close(rms_2, rms_train, tol) and _close(cv_2, model.cv_rmse_px_, tol):
                 say(f"kNN loop stable after {rnd} rounds (a cycle of two rounds)")
                 stable = True
                 break

@@ -419,7 +419,9 @@ def _tangent_basis(rays: np.ndarray) -> np.ndarray:
     return np.stack([b1, b2], axis=2)
 
 
-def model_scale_px_per_rad(calibration_or_camera, rays: np.ndarray) -> np.ndarray:
+def model_scale_px_per_rad(
+    calibration_or_camera, rays: np.ndarray, metric: np.ndarray | None = None
+) -> np.ndarray:
     """Local scale of the camera model at unit rays: singular values of d ideal / d ray.
 
     Parameters
@@ -427,6 +429,10 @@ def model_scale_px_per_rad(calibration_or_camera, rays: np.ndarray) -> np.ndarra
     calibration_or_camera : Calibration or SphereCamera
     rays : array_like, shape (N, 3)
         Unit rays, camera frame.
+    metric : ndarray, shape (N, 2, 2), or None
+        The residual metric ``M`` of each ray's pixel
+        (:meth:`~gtsam_sphere.core.camera.SphereCamera.measurement_metric`): the scales of
+        ``M d ideal / d ray``; None: the identity.
 
     Returns
     -------
@@ -439,6 +445,8 @@ def model_scale_px_per_rad(calibration_or_camera, rays: np.ndarray) -> np.ndarra
     camera = camera_of(calibration_or_camera)
     r = np.asarray(rays, float).reshape(-1, 3)
     _, J = camera.ideal_from_points(r, jacobians=True)
+    if metric is not None:
+        J = np.asarray(metric, float) @ J
     JB = J @ _tangent_basis(r)  # |P| = 1: d ideal / d ray on the tangent plane
     return np.linalg.svd(JB, compute_uv=False)
 
@@ -481,12 +489,7 @@ def bearing_sigma_rad(
     if metric is not None:
         ok &= np.isfinite(metric).all((1, 2))
     if ok.any():
-        if metric is None:
-            s = model_scale_px_per_rad(camera, rays[ok])
-        else:
-            _, J = camera.ideal_from_points(rays[ok], jacobians=True)
-            MJB = metric[ok] @ J @ _tangent_basis(rays[ok])
-            s = np.linalg.svd(MJB, compute_uv=False)
+        s = model_scale_px_per_rad(camera, rays[ok], None if metric is None else metric[ok])
         with np.errstate(divide="ignore"):
             out[ok] = float(sigma_px) / np.sqrt(s[:, 0] * s[:, 1])
     return out

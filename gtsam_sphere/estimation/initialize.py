@@ -1137,7 +1137,7 @@ def initialize_poses(
     image_seeds = rng.integers(0, 2**63 - 1, size=n_images)
     n_eligible_obs = int(counts[eligible].sum())
     for _, family, lens, ro in ranked:
-        thr = max(0.01 * ro, threshold_rad * lens.f_px, threshold_px)
+        thr = _final_threshold_px(ro, lens, threshold_rad, threshold_px)
         say(f"chosen lens hypothesis: {lens.describe()}")
         posed = _pose_all(problem, eligible, lens, thr, image_seeds, min_inliers)
         posed = _final_refit(problem, eligible, lens, thr, image_seeds, min_inliers, posed, say)
@@ -1206,6 +1206,11 @@ def initialize_poses(
     )
 
 
+def _final_threshold_px(ro, lens, threshold_rad, threshold_px) -> float:
+    """The final pass's pixel inlier threshold for ``lens`` (observed radius ``ro`` px)."""
+    return max(0.01 * ro, threshold_rad * lens.f_px, threshold_px)
+
+
 def _folded_poser(
     problem,
     images,
@@ -1223,7 +1228,7 @@ def _folded_poser(
     _, lens, ro = folded_best
 
     def pose() -> InitialisationResult:
-        thr = max(0.01 * ro, threshold_rad * lens.f_px, threshold_px)
+        thr = _final_threshold_px(ro, lens, threshold_rad, threshold_px)
         posed = _pose_all(problem, images, lens, thr, seeds, min_inliers)
         rot, trans, ok, inlier_mask, _, _ = posed
         _in_front_of_the_fold(problem, lens, rot, trans, ok, inlier_mask, thr, lambda _l: None)
