@@ -154,6 +154,13 @@ class Case:
         Pixel noise standard deviation (the simulator's default, 0.3 px, in the lists).
     blunder_rate : float
         Fraction of gross observations (0 in the lists; drawn by :func:`build_stress_cases`).
+    sigma_mode : str or None
+        How the dataset states its targets (``"weighted"``, ``"free"`` or ``"fixed"``,
+        :class:`~gtsam_sphere.simulate.SimulationOptions`); None: the scene's default
+        (the room weighted, the printed objects fixed).
+    target_sigma_m : float or None
+        Standard deviation (metres) of the approximate target coordinates; None: the
+        simulator's default (0.01 m).
     """
 
     id: str
@@ -171,6 +178,8 @@ class Case:
     lens_options: dict[str, float] = field(default_factory=dict)
     noise_px: float = 0.3
     blunder_rate: float = 0.0
+    sigma_mode: str | None = None
+    target_sigma_m: float | None = None
 
     @property
     def circle_radius_px(self) -> float | None:
@@ -194,6 +203,11 @@ class Case:
         from gtsam_sphere.simulate import SimulationOptions
 
         lens_options = dict(self.lens_options)
+        extra = {}
+        if self.sigma_mode is not None:
+            extra["sigma_mode"] = self.sigma_mode
+        if self.target_sigma_m is not None:
+            extra["target_sigma_m"] = self.target_sigma_m
         lens_options["cx"] = (self.width - 1) / 2.0 + self.pp_offset[0] * self.width
         lens_options["cy"] = (self.height - 1) / 2.0 + self.pp_offset[1] * self.height
         return SimulationOptions(
@@ -210,6 +224,7 @@ class Case:
             n_images=self.n_images,
             scene=self.scene,
             seed=self.seed,
+            **extra,
         )
 
 
@@ -283,8 +298,24 @@ STRESS_BLUNDERS = (0.0, 0.0, 0.02, 0.05)
 #: ``p1, p2`` on normalised coordinates); real cameras: ``a1`` up to a few percent
 STRESS_DEFECTS = {"a1": 0.03, "a2": 0.005, "p1": 5e-4, "p2": 5e-4}
 
+#: ``--targets``: how the dataset states its targets, drawn per scene: the room's survey
+#: weighted (1 cm), free (approximate only: a free network) or exact (sigma 0, its shape
+#: then estimated by default); a printed object exact, or measured to 0.5 mm (weighted
+#: or free)
+STRESS_TARGETS = {
+    "room": (("weighted", None), ("free", None), ("fixed", None)),
+    "board": (("fixed", None), ("weighted", 5e-4), ("free", 5e-4)),
+    "object3d": (("fixed", None), ("weighted", 5e-4), ("free", 5e-4)),
+}
+#: ``--targets`` also draws a moving entrance pupil (metres at 90 degrees) and a smooth
+#: error field (pixels), each present in half of the cases
+STRESS_PUPIL_M = (0.001, 0.004)
+STRESS_FIELD_PX = (0.5, 2.0)
 
-def build_stress_cases(seed: int, n: int, defects: bool = False) -> list[Case]:
+
+def build_stress_cases(
+    seed: int, n: int, defects: bool = False, targets: bool = False
+) -> list[Case]:
     """``n`` random cases beyond the lists of :func:`build_cases` (same seed, same cases).
 
     Each draws a family of :data:`FAMILIES` and a field of view anywhere in its range
@@ -304,6 +335,11 @@ def build_stress_cases(seed: int, n: int, defects: bool = False) -> list[Case]:
         Also draw sensor defects (:data:`STRESS_DEFECTS`) for every case, from a
         stream of their own: the other draws (and ids, but for a ``-d`` suffix) are
         those without.
+    targets : bool
+        Also draw, from a third stream, how the dataset states its targets
+        (:data:`STRESS_TARGETS`: weighted, free or exact), a moving entrance pupil
+        (:data:`STRESS_PUPIL_M`) and a smooth error field (:data:`STRESS_FIELD_PX`);
+        ids gain ``-t<mode>`` (``w``, ``f``, ``x``) and ``p``/``e`` for a pupil/field.
 
     Returns
     -------
@@ -312,6 +348,7 @@ def build_stress_cases(seed: int, n: int, defects: bool = False) -> list[Case]:
     """
     rng = np.random.default_rng([seed, 0x57E55])
     defect_rng = np.random.default_rng([seed, 0xDEFEC7])
+    target_rng = np.random.default_rng([seed, 0x7A26E7])
     cases: list[Case] = []
     families = list(FAMILIES)
     for i in range(n):
@@ -333,6 +370,17 @@ def build_stress_cases(seed: int, n: int, defects: bool = False) -> list[Case]:
             for name, bound in STRESS_DEFECTS.items():
                 lens_options[name] = round(float(defect_rng.uniform(-bound, bound)), 6)
             suffix = "-d"
+        sigma_mode = target_sigma_m = None
+        pupil_m = field_px = 0.0
+        if targets:
+            choices = STRESS_TARGETS[scene]
+            sigma_mode, target_sigma_m = choices[int(target_rng.integers(len(choices)))]
+            if target_rng.uniform() < 0.5:
+                pupil_m = round(float(target_rng.uniform(*STRESS_PUPIL_M)), 4)
+            if target_rng.uniform() < 0.5:
+                field_px = round(float(target_rng.uniform(*STRESS_FIELD_PX)), 2)
+            suffix += "-t" + {"weighted": "w", "free": "f", "fixed": "x"}[sigma_mode]
+            suffix += ("p" if pupil_m else "") + ("e" if field_px else "")
         cases.append(
             Case(
                 id=f"s{i:02d}-{family}-{fov:g}-{scene}-{width}x{height}-n{noise:g}-b{blunders:g}"
@@ -345,12 +393,14 @@ def build_stress_cases(seed: int, n: int, defects: bool = False) -> list[Case]:
                 pp_offset=pp,
                 scene=scene,
                 n_images=n_images,
-                pupil_shift_m=0.0,
-                error_field_px=0.0,
+                pupil_shift_m=pupil_m,
+                error_field_px=field_px,
                 seed=int(rng.integers(1 << 30)),
                 lens_options=lens_options,
                 noise_px=noise,
                 blunder_rate=blunders,
+                sigma_mode=sigma_mode,
+                target_sigma_m=target_sigma_m,
             )
         )
     return cases
@@ -693,16 +743,22 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="with --stress: sensor defects (affinity, shear, decentering) in every lens",
     )
+    ap.add_argument(
+        "--targets",
+        action="store_true",
+        help="with --stress: draw how targets are stated (weighted, free, exact), a moving "
+        "pupil and an error field",
+    )
     ap.add_argument("--list", action="store_true", help="list the cases and exit")
     ap.add_argument("--json", default=None, metavar="OUT", help="save the rows as JSON")
     ap.add_argument("--verbose", action="store_true", help="echo calibration progress")
     ap.add_argument("--workdir", default=None, help="keep the simulated files here")
     args = ap.parse_args(argv)
 
-    if args.defects and not args.stress:
-        ap.error("--defects needs --stress N")
+    if (args.defects or args.targets) and not args.stress:
+        ap.error("--defects and --targets need --stress N")
     cases = (
-        build_stress_cases(args.seed, args.stress, args.defects)
+        build_stress_cases(args.seed, args.stress, args.defects, args.targets)
         if args.stress
         else build_cases(args.seed)
     )
@@ -717,7 +773,8 @@ def main(argv: list[str] | None = None) -> int:
                 f"{c.id}: {c.width}x{c.height}, r/short {c.radius_over_short:.2f}, "
                 f"pp {100 * c.pp_offset[0]:+g}%,{100 * c.pp_offset[1]:+g}%, "
                 f"{c.n_images} images, pupil {c.pupil_shift_m:g} m, field {c.error_field_px:g} px, "
-                f"noise {c.noise_px:g} px, blunders {c.blunder_rate:g}, lens {c.lens_options}"
+                f"noise {c.noise_px:g} px, blunders {c.blunder_rate:g}, "
+                f"targets {c.sigma_mode or 'default'}, lens {c.lens_options}"
             )
         print(f"{len(cases)} cases")
         return 0

@@ -117,3 +117,17 @@ def test_atomic_write_refuses_nan_and_keeps_old_file(tmp_path):
         write_json_atomic(path, {"a": float("nan")})
     assert json.loads(path.read_text()) == {"a": 1}
     assert os.listdir(tmp_path) == ["o.json"]
+
+
+def test_subset_observations_records_what_it_leaves_out():
+    ds = parse_dataset(_doc())
+    keep = np.ones(ds.n_observations, bool)
+    keep[[0, 7]] = False  # A's T0, B's T1
+    out = ds.subset_observations(keep, "why")
+    assert out.n_observations == ds.n_observations - 2
+    assert out.image_ids == ds.image_ids  # images stay
+    assert out.dropped == [("A", "T0", "why"), ("B", "T1", "why")]
+    assert np.array_equal(out.uv_px, ds.uv_px[keep])
+    assert ds.dropped == []  # the input is unchanged
+    with pytest.raises(ValueError, match=r"shape \(11,\), got \(3,\)"):
+        ds.subset_observations(np.ones(3, bool), "why")

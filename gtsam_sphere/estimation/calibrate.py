@@ -777,6 +777,86 @@ def with_control_sigma(
     return replace(dataset, target_sigma=sigma)
 
 
+#: an image left with fewer observations of determined targets is not adjusted
+MIN_DETERMINED_OBSERVATIONS = 4
+
+#: the reason recorded for each observation :func:`without_undetermined_targets` leaves out
+UNDETERMINED_REASON = "target without a sigma seen in one image only: not determined"
+
+
+def without_undetermined_targets(
+    dataset: Dataset, say: Callable[[str], None] | None = None
+) -> tuple[Dataset, np.ndarray, np.ndarray]:
+    """``dataset`` without the observations of targets the adjustment cannot determine.
+
+    A target without a sigma (approximate coordinates only) seen in one image only has
+    no depth along its ray: its observation has no redundancy (it says nothing about
+    the lens) and leaves the normal equations singular, which read as "some intrinsics
+    are not determined" (free networks of 10-25 images, where half of the room's
+    targets are seen once: ``bench_lens_zoo.py --stress 40 --seed 212 --targets`` s09,
+    s11, s29). Their observations are left out and recorded in ``dropped``; an image
+    left with fewer than :data:`MIN_DETERMINED_OBSERVATIONS` goes to
+    ``skipped_images``, which may leave other targets seen once: repeated until stable.
+    The rig's joint adjustment, where another camera may see the target, takes them
+    back (:mod:`.rig_joint`).
+
+    Parameters
+    ----------
+    dataset : Dataset
+    say : callable(str), optional
+        Told what was left out.
+
+    Returns
+    -------
+    dataset : Dataset
+        The rest (``dataset`` itself when nothing is left out).
+    keep_obs : ndarray of bool, shape (N,)
+        The input's observations kept.
+    keep_img : ndarray of bool, shape (M,)
+        The input's images kept.
+    """
+    keep_obs = np.ones(dataset.n_observations, bool)
+    keep_img = np.ones(len(dataset.image_ids), bool)
+    free = ~np.isfinite(dataset.target_sigma)
+    if not free.any():
+        return dataset, keep_obs, keep_img
+    while True:
+        pairs = np.unique(
+            np.stack([dataset.obs_image[keep_obs], dataset.obs_target[keep_obs]], 1), axis=0
+        )
+        n_views = np.bincount(pairs[:, 1], minlength=len(dataset.target_ids))
+        weak = keep_obs & free[dataset.obs_target] & (n_views[dataset.obs_target] < 2)
+        keep_obs &= ~weak
+        n_left = np.bincount(dataset.obs_image[keep_obs], minlength=len(dataset.image_ids))
+        few = keep_img & (n_left < MIN_DETERMINED_OBSERVATIONS)
+        keep_img &= ~few
+        keep_obs &= keep_img[dataset.obs_image]
+        if not weak.any() and not few.any():
+            break
+    if keep_obs.all():
+        return dataset, keep_obs, keep_img
+    # left out one by one in the images kept; the images removed go whole (below)
+    left_out = ~keep_obs & keep_img[dataset.obs_image]
+    out = dataset.subset_observations(~left_out, UNDETERMINED_REASON)
+    n_targets = len(np.unique(dataset.obs_target[left_out]))
+    if not keep_img.all():
+        out = out.subset_images(
+            keep_img,
+            dict.fromkeys(
+                np.flatnonzero(~keep_img).tolist(),
+                f"fewer than {MIN_DETERMINED_OBSERVATIONS} observations of targets whose "
+                "coordinates are determined",
+            ),
+        )
+    if say is not None:
+        few = f"; images with too few left: {int((~keep_img).sum())}" if not keep_img.all() else ""
+        say(
+            f"{int(left_out.sum())} observations of {n_targets} targets without a sigma "
+            f"seen in one image only left out (their coordinates are not determined){few}"
+        )
+    return out, keep_obs, keep_img
+
+
 class _FoldsEarly(Exception):
     """A radial run stopped early: the lens folds like a sphere (the message says how).
 
@@ -880,8 +960,10 @@ def _calibrate_once(
         init = initialise(dataset, options.seed, say)
     if fold_probe and init.folded and options.fixed_intrinsics is None:
         raise _FoldsEarly(init, "the initial lens is the folded orthographic one")
-    dataset = with_control_sigma(init.dataset, control_sigma)
-    init_R, init_t = init.cam_from_world_R, init.cam_from_world_t
+    full = with_control_sigma(init.dataset, control_sigma)
+    dataset, keep_obs, keep_img = without_undetermined_targets(full, say)
+    init_R, init_t = init.cam_from_world_R[keep_img], init.cam_from_world_t[keep_img]
+    inlier_mask = None if init.inlier_mask is None else np.asarray(init.inlier_mask)[keep_obs]
     posed = check_geometry(dataset, (init_R, init_t))
     geometry += raise_if_degenerate([p for p in posed if p not in geometry])
     n_input_images = init.n_input_images
@@ -928,8 +1010,8 @@ def _calibrate_once(
         # the observations RANSAC found consistent with the initial poses: the others
         # (40 % on a hard 3D object) would bend the polynomial
         fit_rows = np.ones(len(pc), bool)
-        if init.inlier_mask is not None and init.inlier_mask.sum() >= 4 * (len(radial_names) + 1):
-            fit_rows = np.asarray(init.inlier_mask, bool)
+        if inlier_mask is not None and inlier_mask.sum() >= 4 * (len(radial_names) + 1):
+            fit_rows = np.asarray(inlier_mask, bool)
         cg = initial_radial(
             dataset.uv_px[fit_rows], pc[fit_rows], pp, len(radial_names), warp_w or 0.0
         )
@@ -959,7 +1041,7 @@ def _calibrate_once(
         opt,
         say,
         estimate_sigma=options.sigma_px is None,
-        first_stage_mask=init.inlier_mask,
+        first_stage_mask=inlier_mask,
         after_stage=stage_probe,
     )
     if stage_probe.fired:
@@ -996,6 +1078,15 @@ def _calibrate_once(
         say("computing the precision of the intrinsics (marginal covariance)")
         cov_theta = intrinsics_covariance(problem, adj.values)
     calib = _result(dataset, problem, adj, correction, history, options, n_input_images)
+    left_out = ~keep_obs & keep_img[full.obs_image]
+    if left_out.any():
+        # kept for the rig's joint adjustment, where another camera may determine them
+        calib.statistics["n_undetermined_observations"] = int(left_out.sum())
+        calib.extra["undetermined_observations"] = {
+            "image": [full.image_ids[i] for i in full.obs_image[left_out]],
+            "target": [full.target_ids[j] for j in full.obs_target[left_out]],
+            "uv_px": full.uv_px[left_out],
+        }
     if control_sigma is not None:
         calib.statistics["control_sigma"] = control_sigma
         calib.statistics["control_sigma_mode"] = (

@@ -24,7 +24,8 @@ code                       poses  fatal when
 ``disconnected-network``   no     a group of images sharing no target with the
                                   others is not held by 3 non-collinear targets
                                   with a sigma (always, in a free network)
-``undetermined-targets``   no     never (free targets seen in one image only)
+``undetermined-targets``   no     never (free targets seen in one image only: left
+                                  out of the adjustment)
 ``no-baseline``            yes    the camera centres' spread is below
                                   ``min_baseline_ratio`` of the distance to the
                                   targets and some observed target is free
@@ -407,7 +408,8 @@ def check_geometry(
                 Problem(
                     ProblemCode.UNDETERMINED_TARGETS,
                     f"{len(once)} targets without a sigma are seen in one image only, so their "
-                    f"coordinates are not determined ({_names(once)})",
+                    f"coordinates are not determined ({_names(once)}): their observations "
+                    "are left out of the adjustment",
                     "capture more images so that every target is seen from at least two "
                     "positions, or give these targets a sigma",
                     False,

@@ -242,6 +242,23 @@ def rig_redundancy(problems: dict[str, BundleProblem], values: gtsam.Values) -> 
     return {c: red[bounds[k] : bounds[k + 1]] for k, c in enumerate(ids)}
 
 
+def _with_undetermined(extra: dict) -> dict:
+    """A calibration's observations (``extra["observations"]``: ``image``, ``target``,
+    ``uv_px``) followed by those it left out as not determined
+    (``extra["undetermined_observations"]``)."""
+    obs = extra["observations"]
+    more = extra.get("undetermined_observations")
+    if not more or not len(more["image"]):
+        return obs
+    return {
+        "image": list(obs["image"]) + list(more["image"]),
+        "target": list(obs["target"]) + list(more["target"]),
+        "uv_px": np.concatenate(
+            [np.asarray(obs["uv_px"], float).reshape(-1, 2), np.asarray(more["uv_px"], float)]
+        ),
+    }
+
+
 def adjust_rig_jointly(
     rig: RigDataset,
     calibs: dict[str, Calibration],
@@ -320,22 +337,23 @@ def adjust_rig_jointly(
     kept: dict[str, np.ndarray] = {}
     all_targets, own_poses = [], []
     image_global = {iid: g for g, iid in enumerate(rig.image_ids)}
+    # each camera's observations, with those its own calibration left out as not
+    # determined (calibrate.without_undetermined_targets): another camera may see them
+    obs_of = {cid: _with_undetermined(calibs[cid].extra) for cid in ids}
     # targets without a sigma seen in fewer than two images (of any camera) are not
     # determined: their observations stay out of the graph
     n_views = np.zeros(len(rig.target_ids), int)
     pairs = {
         (image_global[i], t_index[tg])
         for cid in ids
-        for i, tg in zip(
-            calibs[cid].extra["observations"]["image"], calibs[cid].extra["observations"]["target"]
-        )
+        for i, tg in zip(obs_of[cid]["image"], obs_of[cid]["target"])
     }
     for _, j in pairs:
         n_views[j] += 1
     undetermined = ~np.isfinite(sigma) & (n_views < 2)
     for c, cid in enumerate(ids):
         calib = calibs[cid]
-        obs = calib.extra["observations"]
+        obs = obs_of[cid]
         local = {iid: k for k, iid in enumerate(calib.image_ids)}
         obs_target = np.array([t_index[tg] for tg in obs["target"]], int)
         keep = ~undetermined[obs_target]

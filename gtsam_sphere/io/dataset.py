@@ -16,7 +16,7 @@ import math
 import numbers
 import os
 import tempfile
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -122,6 +122,30 @@ class Dataset:
             dropped=list(self.dropped),
             source=self.source,
             n_input_observations=self.n_input_observations,
+        )
+
+    def subset_observations(self, keep: np.ndarray, reason: str) -> Dataset:
+        """Return a copy keeping the observations where ``keep`` (N,) is True.
+
+        Every image stays (:meth:`subset_images` removes images); the observations
+        removed are appended to ``dropped`` as ``(image id, target id, reason)``, so the
+        output statistics count them (``n_rejected``, ``dropped_observations``).
+        """
+        keep = np.asarray(keep, bool)
+        if keep.shape != (self.n_observations,):
+            raise ValueError(f"keep must have shape ({self.n_observations},), got {keep.shape}")
+        gone = np.flatnonzero(~keep)
+        dropped = list(self.dropped) + [
+            (self.image_ids[self.obs_image[o]], self.target_ids[self.obs_target[o]], reason)
+            for o in gone
+        ]
+        return replace(
+            self,
+            obs_image=self.obs_image[keep],
+            obs_target=self.obs_target[keep],
+            uv_px=self.uv_px[keep],
+            dropped=dropped,
+            skipped_images=list(self.skipped_images),
         )
 
 
