@@ -35,10 +35,14 @@ the exception, never the end of the sweep.
     python benchmarks/bench_lens_zoo.py --quick [--json out.json]
     python benchmarks/bench_lens_zoo.py --only double-sphere
     python benchmarks/bench_lens_zoo.py --stress 40 --seed 101   # random draws, see below
+    python benchmarks/bench_lens_zoo.py --stress 40 --seed 211 --targets [--defects]
 
 ``--stress N`` replaces the list with N random draws (:func:`build_stress_cases`):
 image sizes from 640x480, noise up to 1.5 px, up to 5 % blunders, 8 to 60 images and
-pinholes from 40 degrees. The summary counts the results trusted but over
+pinholes from 40 degrees; ``--defects`` adds sensor defects (affinity, shear,
+decentering) to every lens, ``--targets`` draws how the dataset states its targets
+(weighted, free, exact), a moving pupil and an error field. The summary counts the
+results trusted but over
 :data:`SILENT_RATIO` times the oracle and the family oracle (and, with an error field,
 the field-blind oracle).
 """

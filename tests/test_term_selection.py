@@ -225,3 +225,47 @@ def test_initial_radial_mapping_ignores_what_ransac_rejected():
     assert abs(first_c(~outer) / f_px - 1.0) < 0.02, (first_c(~outer), f_px)
     dragged = first_c(np.ones(len(uv), bool))
     assert abs(dragged / f_px - 1.0) > 2 * abs(first_c(~outer) / f_px - 1.0), dragged
+
+
+RADIAL6 = ("g3", "g5", "g7", "g9", "g11", "g13")
+
+
+def _stats(radial_w, pair_w=()):
+    """Intrinsics with a unit covariance whose squares are the given Wald statistics
+    (xp, yp, c first, then the radial terms, then p1, p2)."""
+    names = ["xp_px", "yp_px", "c_px", *RADIAL6] + (["p1", "p2"] if pair_w else [])
+    theta = np.concatenate([[300.0, 200.0, 400.0], np.sqrt(radial_w), np.sqrt(pair_w)])
+    return theta, np.eye(len(names)), names
+
+
+def test_radial_order_is_the_smallest_bic_not_the_first_the_full_model_beats():
+    """g3 is real (W = 20), the five above are noise: dropping all six costs W = 21 <
+    6 ln(2N) = 40.6, so the old top-down rule dropped g3 too; its BIC (21) is far above
+    keeping g3 alone (1 + 6.8)."""
+    from gtsam_sphere.estimation.calibrate import terms_to_drop
+
+    theta, cov, names = _stats([20.0, 0.4, 0.2, 0.2, 0.1, 0.1])
+    n = 432  # ln(2 N) = 6.76
+    drop = terms_to_drop(theta, cov, names, RADIAL6, (), n, dof=1e9)
+    assert drop == ["g13", "g11", "g9", "g7", "g5"]
+    # nothing real: everything goes; everything real: nothing goes
+    assert terms_to_drop(*_stats([0.5] * 6), RADIAL6, (), n, 1e9) == list(RADIAL6[::-1])
+    assert terms_to_drop(*_stats([50.0] * 6), RADIAL6, (), n, 1e9) == []
+
+
+def test_a_pair_is_judged_with_the_uncertainty_of_sigma():
+    """A decentering pair whose Wald increment is 14.2 (19.3 with the radial tail's 5.1)
+    against a penalty of 11.6 (N = 167) passes when the sigma is exact (many degrees of
+    freedom) and not when the sigma came from 32 (10.3): a rig's narrow pinhole, most
+    targets seen once, whose poses were 1.0 deg off with the pair."""
+    from gtsam_sphere.estimation.calibrate import likelihood_ratio, terms_to_drop
+
+    theta, cov, names = _stats([50.0, 50.0, 2.0, 1.5, 1.0, 0.62], [7.085, 7.085])
+    brown = ("p1", "p2")
+    assert "p1" not in terms_to_drop(theta, cov, names, RADIAL6, brown, 167, dof=1e6)
+    assert terms_to_drop(theta, cov, names, RADIAL6, brown, 167, dof=32.0)[-2:] == ["p1", "p2"]
+    # r ln(1 + W / r): W for large r, smaller (and monotone in W) for small r
+    assert likelihood_ratio(14.2, 1e7) == pytest.approx(14.2, rel=1e-5)
+    assert likelihood_ratio(14.2, 32.0) == pytest.approx(32.0 * np.log1p(14.2 / 32.0))
+    assert likelihood_ratio(14.2, 32.0) < likelihood_ratio(20.0, 32.0) < 20.0
+    assert likelihood_ratio(np.inf, 32.0) == np.inf and likelihood_ratio(3.0, 0.0) == 3.0

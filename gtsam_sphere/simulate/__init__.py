@@ -183,7 +183,7 @@ def add_cli_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParse
         help="simulate a camera rig moving through the room (dataset@2): stereo, dual360 "
         "(back-to-back 220 deg), ring4 (four outward cameras, no common field of view), "
         "mixed (fisheye + 60 deg pinhole); with --seed, --noise-px, --frames, --n-targets, "
-        "--n-checkpoints, --checkpoint-noise-m, --target-sigma-m",
+        "--n-checkpoints, --checkpoint-noise-m, --target-sigma-m, --error-field-px",
     )
     parser.add_argument(
         "--frames", type=int, default=None, help="rigs: number of rig poses (default 12)"
@@ -202,6 +202,7 @@ _RIG_FIELDS = (
     "n_checkpoints",
     "checkpoint_noise_m",
     "target_sigma_m",
+    "error_field_px",
 )
 
 

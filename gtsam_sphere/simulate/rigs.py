@@ -50,7 +50,7 @@ from typing import Any
 import numpy as np
 
 from ..core.errors import OptionsError
-from .lenses import make_lens
+from .lenses import ErrorField, make_lens
 from .room import (
     SimulationOptions,
     _jsonable,
@@ -106,6 +106,11 @@ class RigOptions:
         A camera seeing fewer targets in a frame loses that image.
     preferred_targets_per_image : int
         A pose is accepted at once when every camera sees this many targets.
+    error_field_px : float
+        Amplitude (px) of a smooth error field in every camera's lens (each its own,
+        seeded with ``seed + 7919 + k`` for camera ``k``, as
+        :func:`~gtsam_sphere.simulate.room.build_lens` does): what no radial
+        or Brown term holds and a kNN correction learns; 0 = none.
     room : SimulationOptions
         The room (size, wall clearance, station heights, tilt, margins, facing and
         range limits); its lens, image size and counts are not used.
@@ -121,6 +126,7 @@ class RigOptions:
     checkpoint_noise_m: float = 0.0
     min_targets_per_image: int = 8
     preferred_targets_per_image: int = 20
+    error_field_px: float = 0.0
     room: SimulationOptions = field(default_factory=SimulationOptions)
 
     def validate(self) -> None:
@@ -131,6 +137,8 @@ class RigOptions:
             raise ValueError("n_frames and n_targets must be positive")
         if self.noise_px < 0 or self.target_sigma_m < 0 or self.checkpoint_noise_m < 0:
             raise ValueError("noise_px, target_sigma_m and checkpoint_noise_m must be >= 0")
+        if not math.isfinite(self.error_field_px) or self.error_field_px < 0:
+            raise ValueError(f"error_field_px must be >= 0, got {self.error_field_px}")
         if self.n_checkpoints < 0:
             raise ValueError("n_checkpoints must be >= 0")
         if self.min_targets_per_image < 1:
@@ -370,6 +378,19 @@ def simulate_rig(options: RigOptions | None = None) -> RigSimulation:
     options.validate()
     rng = np.random.default_rng(options.seed)
     cams = rig_cameras(options.rig)
+    if options.error_field_px:
+        cams = [
+            replace(
+                cam,
+                lens=ErrorField(
+                    cam.lens,
+                    options.error_field_px,
+                    seed=options.seed + 7919 + k,
+                    scale_px=float(max(cam.width, cam.height)),
+                ),
+            )
+            for k, cam in enumerate(cams)
+        ]
     room = replace(options.room, n_targets=options.n_targets)
     cam_opts = [_camera_options(room, cam) for cam in cams]
     scene = _room_scene(room, None, rng)
