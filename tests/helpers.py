@@ -18,6 +18,17 @@ def shared_data_file(name: str) -> Path:
     return path
 
 
+def dataset_doc(targets, images, width=640, height=480):
+    """A ``dataset@1`` document (metres) of ``targets`` and ``images`` (lists of dicts)."""
+    return {
+        "format": "gtsam-sphere/dataset@1",
+        "units": "m",
+        "camera": {"width": width, "height": height},
+        "targets": targets,
+        "images": images,
+    }
+
+
 def checkpoints_of(sim):
     """Check point ids and coordinates (K, 3) of a simulation."""
     ids = [t["id"] for t in sim.checkpoints["targets"]]

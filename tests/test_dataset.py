@@ -6,6 +6,7 @@ import os
 
 import numpy as np
 import pytest
+from helpers import dataset_doc
 
 from gtsam_sphere.io.dataset import (
     DatasetError,
@@ -19,16 +20,13 @@ from gtsam_sphere.io.dataset import (
 def _doc():
     targets = [{"id": f"T{k}", "xyz": [float(k), 0.5 * k, 2.0], "sigma": 0.01} for k in range(6)]
     obs = [{"target": f"T{k}", "uv": [100.0 + 10 * k, 200.0]} for k in range(6)]
-    return {
-        "format": "gtsam-sphere/dataset@1",
-        "units": "m",
-        "camera": {"width": 640, "height": 480},
-        "targets": targets,
-        "images": [
+    return dataset_doc(
+        targets,
+        [
             {"id": "A", "observations": obs},
             {"id": "B", "observations": [dict(o) for o in obs[:5]]},
         ],
-    }
+    )
 
 
 def test_valid_dataset_round_trip(tmp_path):

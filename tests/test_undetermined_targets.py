@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from helpers import dataset_doc
 
 from gtsam_sphere.estimation.calibrate import (
     MIN_DETERMINED_OBSERVATIONS,
@@ -29,17 +30,14 @@ def _doc(sigma=None):
     def obs(ks):
         return [{"target": f"T{k}", "uv": [100.0 + 10 * k, 200.0 + k]} for k in ks]
 
-    return {
-        "format": "gtsam-sphere/dataset@1",
-        "units": "m",
-        "camera": {"width": 640, "height": 480},
-        "targets": targets,
-        "images": [
+    return dataset_doc(
+        targets,
+        [
             {"id": "A", "observations": obs(range(7))},
             {"id": "B", "observations": obs(range(6))},
             {"id": "C", "observations": obs([0, 1, 7, 8, 9])},
         ],
-    }
+    )
 
 
 def test_free_targets_seen_once_are_left_out_and_counted():
