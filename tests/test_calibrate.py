@@ -814,3 +814,24 @@ def test_an_untrusted_radial_result_tries_the_folded_lens_the_search_scored(monk
             assert [c[0] for c in calls] == ["radial+knn", "brown+knn"]
             assert calls[1][1] is folded_init and posed == [1]
             assert "the lens may fold" in calib.statistics["model_fallback"]
+
+
+def test_a_fold_where_no_target_was_seen_is_named_as_such():
+    """A mapping that folds in a gap of the observations is extrapolated there: the
+    reason says where nothing was seen (a 322 deg lens whose board stayed beyond 60 deg
+    off the axis folded at 38 deg); a fold among the observations keeps the advice on
+    the model."""
+    from gtsam_sphere.estimation.calibrate import FOLD_GAP_DEG, fold_reason
+
+    periphery = np.linspace(62.0, 161.0, 200)
+    msg = fold_reason(38.4, 161.0, periphery)
+    assert "folds at 38.4 deg, where no target was observed" in msg
+    assert "none below 62 deg" in msg and "near the image centre" in msg
+    ring = np.concatenate([np.linspace(0.0, 20.0, 50), np.linspace(70.0, 150.0, 50)])
+    msg = fold_reason(45.0, 150.0, ring)
+    assert "none between 20 and 70 deg" in msg and "image centre" not in msg
+    dense = np.linspace(0.0, 150.0, 400)
+    assert FOLD_GAP_DEG > 150.0 / 399
+    msg = fold_reason(120.0, 150.0, dense)
+    assert "inside the observed field (150.0 deg)" in msg and "--radial-terms" in msg
+    assert "inside the observed field" in fold_reason(120.0, 150.0, [])

@@ -1858,6 +1858,54 @@ def select_terms(
 OUTLIER_SHARE = 0.1
 
 
+#: a fold between two observed incidence angles this far apart (degrees) lies where the
+#: mapping is extrapolated, and :func:`fold_reason` says so
+FOLD_GAP_DEG = 10.0
+
+
+def fold_reason(fold_deg: float, seen_deg: float, incidence_deg) -> str:
+    """Why a radial mapping that folds at ``fold_deg`` inside the field seen up to
+    ``seen_deg`` is not trusted, naming the gap in the observations it lies in, if any.
+
+    A 322 deg stereographic lens that saw its board only beyond 60 deg off the axis
+    (``bench_lens_zoo.py --stress 40 --seed 213 --targets --defects`` s19) fitted the
+    periphery well (0.83x the oracle's 3D error) while its polynomial folded at 38 deg,
+    where no target was: the centre of the image is extrapolated, and "fewer terms"
+    was not the advice to give.
+
+    Parameters
+    ----------
+    fold_deg : float
+        Where the mapping stops increasing (degrees).
+    seen_deg : float
+        The widest observed incidence (degrees).
+    incidence_deg : array_like, shape (N,)
+        The observations' incidence angles (degrees).
+
+    Returns
+    -------
+    str
+    """
+    inc = np.asarray(incidence_deg, float).ravel()
+    inc = inc[np.isfinite(inc)]
+    below, above = inc[inc <= fold_deg], inc[inc > fold_deg]
+    lo = float(below.max()) if below.size else 0.0
+    hi = float(above.min()) if above.size else float(seen_deg)
+    if inc.size and hi - lo >= FOLD_GAP_DEG:
+        gap = f"below {hi:.0f} deg" if not below.size else f"between {lo:.0f} and {hi:.0f} deg"
+        return (
+            f"the radial mapping folds at {fold_deg:.1f} deg, where no target was observed "
+            f"(none {gap} off the axis; the field seen reaches {seen_deg:.1f} deg): the "
+            "mapping there is extrapolated; capture views with the target there"
+            + (" (near the image centre)" if not below.size else "")
+        )
+    return (
+        f"the radial mapping folds at {fold_deg:.1f} deg, inside the observed field "
+        f"({seen_deg:.1f} deg): fewer --radial-terms, or --model sphere if the lens itself "
+        "folds (an orthographic lens past 180 deg)"
+    )
+
+
 def distrust_reasons(
     calib: Calibration,
     cov_theta,
@@ -1884,10 +1932,13 @@ def distrust_reasons(
         out.append("the normal equations are singular: some intrinsics are not determined")
     cam = calib.camera
     if cam.radial is not None and np.degrees(cam.max_alpha_rad()) < st["max_incidence_deg"]:
+        incidence = calib.extra.get("observations", {}).get("incidence_deg")
         out.append(
-            f"the radial mapping folds at {np.degrees(cam.max_alpha_rad()):.1f} deg, inside "
-            f"the observed field ({st['max_incidence_deg']:.1f} deg): fewer --radial-terms, "
-            "or --model sphere if the lens itself folds (an orthographic lens past 180 deg)"
+            fold_reason(
+                float(np.degrees(cam.max_alpha_rad())),
+                st["max_incidence_deg"],
+                [] if incidence is None else incidence,
+            )
         )
     if st["n_outliers"] > OUTLIER_SHARE * max(st["n_observations"], 1):
         out.append(f"{st['n_outliers']} of {st['n_observations']} observations are beyond 5 sigma")
