@@ -849,10 +849,10 @@ def without_undetermined_targets(
             ),
         )
     if say is not None:
-        few = f"; images with too few left: {int((~keep_img).sum())}" if not keep_img.all() else ""
+        gone = f"; images with too few left: {int((~keep_img).sum())}" if not keep_img.all() else ""
         say(
             f"{int(left_out.sum())} observations of {n_targets} targets without a sigma "
-            f"seen in one image only left out (their coordinates are not determined){few}"
+            f"seen in one image only left out (their coordinates are not determined){gone}"
         )
     return out, keep_obs, keep_img
 
