@@ -132,3 +132,18 @@ def test_free_network_of_few_images_is_trusted():
     left = calib.extra["undetermined_observations"]
     assert len(left["image"]) == len(left["target"]) == len(left["uv_px"])
     assert set(left["target"]).isdisjoint(calib.target_ids)
+
+
+def test_undetermined_targets_counts_images_not_observations():
+    """One image observing a target twice does not determine it; NaN and inf sigma are
+    both 'no sigma'; a target with a sigma is never undetermined."""
+    from gtsam_sphere.estimation.diagnose import undetermined_targets
+
+    obs_image = np.array([0, 0, 0, 1, 1, 2])
+    obs_target = np.array([0, 0, 1, 1, 2, 3])
+    sigma = np.array([np.nan, np.nan, np.inf, 0.01, np.nan])
+    # T0 twice in image 0, T1 in images 0 and 1, T2 once, T3 once with a sigma, T4 unseen
+    assert undetermined_targets(obs_image, obs_target, sigma).tolist() == [
+        True, False, True, False, True,
+    ]  # fmt: skip
+    assert undetermined_targets([], [], sigma).tolist() == [True, True, True, False, True]

@@ -32,7 +32,7 @@ from ..core.geometry import fit_similarity, incidence_deg
 from ..core.robust import MAD_RELATIVE_SE, MAD_TO_SIGMA, Loss, robust_sigma_px, robust_weight
 from ..io.calibration import Calibration
 from ..io.dataset import Dataset
-from .diagnose import check_geometry, raise_if_degenerate
+from .diagnose import check_geometry, raise_if_degenerate, undetermined_targets
 from .graph import (
     INTRINSICS_KEY,
     BundleProblem,
@@ -817,15 +817,13 @@ def without_undetermined_targets(
     """
     keep_obs = np.ones(dataset.n_observations, bool)
     keep_img = np.ones(len(dataset.image_ids), bool)
-    free = ~np.isfinite(dataset.target_sigma)
-    if not free.any():
+    if np.isfinite(dataset.target_sigma).all():
         return dataset, keep_obs, keep_img
     while True:
-        pairs = np.unique(
-            np.stack([dataset.obs_image[keep_obs], dataset.obs_target[keep_obs]], 1), axis=0
+        undetermined = undetermined_targets(
+            dataset.obs_image[keep_obs], dataset.obs_target[keep_obs], dataset.target_sigma
         )
-        n_views = np.bincount(pairs[:, 1], minlength=len(dataset.target_ids))
-        weak = keep_obs & free[dataset.obs_target] & (n_views[dataset.obs_target] < 2)
+        weak = keep_obs & undetermined[dataset.obs_target]
         keep_obs &= ~weak
         n_left = np.bincount(dataset.obs_image[keep_obs], minlength=len(dataset.image_ids))
         few = keep_img & (n_left < MIN_DETERMINED_OBSERVATIONS)
@@ -1756,7 +1754,7 @@ def terms_to_drop(
     bic = [stat(radial[k:]) + k * penalty for k in range(len(radial) + 1)]
     order = min(range(len(radial) + 1), key=lambda k: (bic[k], k))
     drop = radial[order:][::-1]
-    s_drop = stat(drop)
+    s_drop = bic[order] - order * penalty  # L(drop)
     for pair in (("p1", "p2"), ("a1", "a2")):
         group = [n for n in pair if n in brown_names]
         if not group:

@@ -57,6 +57,7 @@ __all__ = [
     "check_geometry",
     "image_groups",
     "raise_if_degenerate",
+    "undetermined_targets",
 ]
 
 
@@ -183,6 +184,32 @@ def image_groups(dataset: Dataset) -> list[np.ndarray]:
     roots = np.array([find(i) for i in range(n_img)], int)
     groups = [np.flatnonzero(roots == r) for r in np.unique(roots)]
     return sorted(groups, key=lambda g: (-len(g), int(g[0])))
+
+
+def undetermined_targets(
+    obs_image: np.ndarray, obs_target: np.ndarray, target_sigma: np.ndarray
+) -> np.ndarray:
+    """Targets without a sigma seen in fewer than two images: no depth along the ray.
+
+    Parameters
+    ----------
+    obs_image, obs_target : ndarray of int, shape (N,)
+        Image and target index of each observation (an image may observe a target twice:
+        it counts once).
+    target_sigma : ndarray, shape (T,)
+        NaN (or inf) where a target has no sigma.
+
+    Returns
+    -------
+    ndarray of bool, shape (T,)
+    """
+    sigma = np.asarray(target_sigma, float)
+    pairs = np.unique(
+        np.stack([np.asarray(obs_image, int), np.asarray(obs_target, int)], 1).reshape(-1, 2),
+        axis=0,
+    )
+    n_views = np.bincount(pairs[:, 1], minlength=len(sigma))
+    return ~np.isfinite(sigma) & (n_views < 2)
 
 
 def check_geometry(
@@ -399,10 +426,8 @@ def check_geometry(
                 )
 
     if n_img > 1 and len(free_used):
-        n_views = np.zeros(len(tids), int)
-        pairs = np.unique(np.stack([dataset.obs_image, dataset.obs_target], 1), axis=0)
-        np.add.at(n_views, pairs[:, 1], 1)
-        once = [tids[j] for j in free_used if n_views[j] < 2]
+        undetermined = undetermined_targets(dataset.obs_image, dataset.obs_target, sigma)
+        once = [tids[j] for j in free_used if undetermined[j]]
         if once:
             problems.append(
                 Problem(

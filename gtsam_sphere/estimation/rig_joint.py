@@ -49,6 +49,7 @@ from ..core.robust import robust_weight
 from ..io.calibration import Calibration
 from ..io.dataset import RigDataset
 from .correct import train_correction
+from .diagnose import undetermined_targets
 from .graph import (
     BundleProblem,
     Datum,
@@ -342,15 +343,11 @@ def adjust_rig_jointly(
     obs_of = {cid: _with_undetermined(calibs[cid].extra) for cid in ids}
     # targets without a sigma seen in fewer than two images (of any camera) are not
     # determined: their observations stay out of the graph
-    n_views = np.zeros(len(rig.target_ids), int)
-    pairs = {
-        (image_global[i], t_index[tg])
-        for cid in ids
-        for i, tg in zip(obs_of[cid]["image"], obs_of[cid]["target"])
-    }
-    for _, j in pairs:
-        n_views[j] += 1
-    undetermined = ~np.isfinite(sigma) & (n_views < 2)
+    undetermined = undetermined_targets(
+        [image_global[i] for cid in ids for i in obs_of[cid]["image"]],
+        [t_index[tg] for cid in ids for tg in obs_of[cid]["target"]],
+        sigma,
+    )
     for c, cid in enumerate(ids):
         calib = calibs[cid]
         obs = obs_of[cid]
