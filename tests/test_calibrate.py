@@ -835,3 +835,56 @@ def test_a_fold_where_no_target_was_seen_is_named_as_such():
     msg = fold_reason(120.0, 150.0, dense)
     assert "inside the observed field (150.0 deg)" in msg and "--radial-terms" in msg
     assert "inside the observed field" in fold_reason(120.0, 150.0, [])
+
+
+def test_fits_worse_than_reference_compares_the_median_scales():
+    """A chosen model is distrusted only beyond ``REFERENCE_FIT_RATIO`` times the radial
+    reference's scale; the message names the model, both scales and their ratio."""
+    from gtsam_sphere.estimation.calibrate import REFERENCE_FIT_RATIO, fits_worse_than_reference
+
+    assert fits_worse_than_reference("sphere+knn", 0.30, 0.29) == ""
+    assert fits_worse_than_reference("sphere+knn", REFERENCE_FIT_RATIO * 0.29, 0.29) == ""
+    assert fits_worse_than_reference("sphere", 1.0, float("nan")) == ""
+    why = fits_worse_than_reference("sphere+knn", 0.45, 0.30)
+    assert "sphere+knn" in why and "0.450 px" in why and "0.300 px" in why and "1.50 times" in why
+
+
+def test_median_scale_is_the_per_axis_sigma_of_2d_normal_residuals():
+    from gtsam_sphere.estimation.calibrate import median_scale_px
+
+    rng = np.random.default_rng(4)
+    assert median_scale_px(0.7 * rng.standard_normal((20000, 2))) == pytest.approx(0.7, rel=0.03)
+
+
+def _small_room(lens: str):
+    return simulate_room(
+        SimulationOptions(lens=lens, fov_deg=150.0, n_images=8, n_targets=80, noise_px=0.3, seed=5)
+    )
+
+
+def test_a_chosen_model_that_does_not_follow_the_lens_is_not_trusted():
+    """The paper's sphere mapping chosen for an equidistant lens leaves its misfit in the
+    residuals: the radial reference from the same start fits far better, and the result
+    is not trusted (it was, before session 21, at tens of times the oracle's error). The
+    same choice on a sphere lens fits as well as the reference and is trusted."""
+    options = CalibrationOptions(model="sphere", covariance=False)
+    lines = []
+    calib = calibrate(parse_dataset(_small_room("equidistant").dataset), options, lines.append)
+    st = calib.statistics
+    assert not st["trusted"]
+    assert any("does not follow this lens" in r for r in st["distrust"]), st["distrust"]
+    assert st["scale_px"] > 1.2 * st["reference_scale_px"]
+    assert any(ln.startswith("checking the sphere model against") for ln in lines)
+    calib = calibrate(parse_dataset(_small_room("sphere").dataset), options)
+    st = calib.statistics
+    assert st["trusted"], st["distrust"]
+    assert st["scale_px"] <= 1.2 * st["reference_scale_px"]
+
+
+def test_the_default_model_is_not_checked_against_a_reference():
+    """The radial models are the reference: no second adjustment, no reference scale."""
+    lines = []
+    options = CalibrationOptions(model="radial", covariance=False)
+    calib = calibrate(parse_dataset(_small_room("equidistant").dataset), options, lines.append)
+    assert "reference_scale_px" not in calib.statistics
+    assert not any(ln.startswith("checking the") for ln in lines)

@@ -271,3 +271,61 @@ def test_knn_relearned_in_the_joint_graph():
             R, t = calib.cam_from_rig[cam.id]
             assert _rotation_deg(R @ cam.cam_from_rig[0].T) < 0.2
             assert np.linalg.norm(t - cam.cam_from_rig[1]) < 0.01
+
+
+def _free(doc: dict) -> dict:
+    """The rig document with every target's ``sigma`` removed (a free network)."""
+    out = dict(doc)
+    out["targets"] = [{k: v for k, v in t.items() if k != "sigma"} for t in doc["targets"]]
+    return out
+
+
+def test_a_camera_split_in_groups_keeps_its_largest_for_the_rig():
+    """The mixed rig's pinhole in a free network (6 frames, seed 1): its own images form
+    groups that share no target, so calibrating it alone is refused; the largest group
+    is what it calibrates on, the others' observations wait for the joint graph, and
+    nothing is skipped or dropped on the way."""
+    from gtsam_sphere.core.errors import DegenerateGeometryError
+    from gtsam_sphere.estimation.diagnose import image_groups
+    from gtsam_sphere.estimation.rig import largest_connected_part
+
+    sim = simulate_rig(RigOptions(rig="mixed", n_frames=6, seed=1))
+    rig = parse_rig_dataset(_free(sim.dataset))
+    ds = split_rig(rig)["pinhole"]
+    with pytest.raises(DegenerateGeometryError) as err:
+        calibrate(ds, CalibrationOptions())
+    groups = image_groups(ds)
+    assert len(groups) >= 2
+    framed = {i for i, f in zip(rig.image_ids, rig.image_frame) if f}
+    main, rest = largest_connected_part(ds, err.value, framed, joint=True)
+    assert main.image_ids == [ds.image_ids[i] for i in sorted(groups[0])]
+    assert main.skipped_images == ds.skipped_images and main.dropped == ds.dropped
+    assert main.n_observations + len(rest["image"]) == ds.n_observations
+    assert set(rest["image"]).isdisjoint(main.image_ids)
+    assert np.asarray(rest["uv_px"]).shape == (len(rest["image"]), 2)
+    # not without the joint adjustment, nor for an image without a frame
+    assert largest_connected_part(ds, err.value, framed, joint=False) is None
+    assert largest_connected_part(ds, err.value, framed - set(rest["image"]), True) is None
+
+
+@pytest.mark.slow  # a two-camera rig of 12 frames, ~14 s
+def test_free_network_rig_with_a_split_camera_is_calibrated():
+    """A free mixed rig of 12 frames end to end: refused before (exit 2, "the images
+    form 2 groups that share no target" for the pinhole); now every image of both
+    cameras is posed in the joint adjustment, trusted, ``cam_from_rig`` close to the
+    truth. (With 6 frames the pinhole's largest group alone is too weak: its own
+    calibration, and so the rig, is not trusted.)"""
+    sim = simulate_rig(RigOptions(rig="mixed", n_frames=12, seed=1))
+    rig = parse_rig_dataset(_free(sim.dataset))
+    lines = []
+    calib = calibrate_rig(rig, progress=lines.append)
+    assert any("form groups that share no target" in ln for ln in lines), lines
+    assert calib.statistics["trusted"], calib.statistics["distrust"]
+    pin = calib.statistics["cameras"]["pinhole"]
+    assert pin["n_images_joint_only"] >= 1
+    assert pin["n_images_rig"] > pin["n_images"]
+    assert sorted(calib.image_ids) == sorted(rig.image_ids)
+    for cam in sim.cameras:
+        R, t = calib.cam_from_rig[cam.id]
+        assert _rotation_deg(R @ cam.cam_from_rig[0].T) < 0.2
+        assert np.linalg.norm(t - cam.cam_from_rig[1]) < 0.01

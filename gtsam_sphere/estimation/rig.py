@@ -45,14 +45,16 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..core.camera import Model
+from ..core.errors import DegenerateGeometryError
 from ..core.lie import nearest_rotation
 from ..core.lie import rotation_angle as rotation_angle  # re-exported
 from ..core.robust import MEDIAN_NORM_3D, Loss, robust_weight
 from ..io.calibration import Calibration, RigCalibration
-from ..io.dataset import DatasetError, RigDataset, read_json, split_rig
+from ..io.dataset import Dataset, DatasetError, RigDataset, read_json, split_rig
 from .calibrate import CalibrationOptions, calibrate
+from .diagnose import ProblemCode, image_groups
 from .optimize import OptimizerOptions
-from .rig_joint import adjust_rig_jointly, precision_from_covariance
+from .rig_joint import adjust_rig_jointly, joint_images, precision_from_covariance
 
 logger = logging.getLogger(__name__)
 
@@ -449,6 +451,60 @@ def _rms(res: np.ndarray) -> float | None:
     return float(np.sqrt(np.mean(np.sum(res[ok] ** 2, axis=1)))) if ok.any() else None
 
 
+def largest_connected_part(
+    dataset: Dataset, error: DegenerateGeometryError, framed: set[str], joint: bool
+) -> tuple[Dataset, dict] | None:
+    """A rig camera whose own images form groups that share no target: its largest
+    group to calibrate alone, and the other groups' observations for the joint graph.
+
+    In a rig the camera's other groups are still held: their frames' poses come from
+    the other cameras, so the joint adjustment (:func:`.rig_joint.adjust_rig_jointly`)
+    takes them back. This applies only when the camera's calibration was refused for
+    disconnected groups alone (``error``'s fatal problems are all
+    ``disconnected-network``), the joint adjustment runs and every image outside the
+    largest group has a frame; else None (the refusal stands). A narrow camera of a
+    free-network rig (no target sigma) meets this: its images see parts of the room
+    the other cameras link (``simulate --rig mixed --frames 6 --seed 1``, every sigma
+    removed: the pinhole's images form 2-3 groups).
+
+    Parameters
+    ----------
+    dataset : Dataset
+        The camera's part of the rig (:func:`split_rig`).
+    error : DegenerateGeometryError
+        Its calibration's refusal.
+    framed : set of str
+        Ids of the rig's images that have a frame.
+    joint : bool
+        Whether the joint adjustment runs.
+
+    Returns
+    -------
+    (Dataset, dict) or None
+        The largest group's dataset (the other images neither skipped nor dropped
+        there) and the other observations: ``image``, ``target`` (lists of ids),
+        ``uv_px`` (K, 2).
+    """
+    codes = {p.code for p in error.problems}
+    if not joint or codes != {ProblemCode.DISCONNECTED}:
+        return None
+    groups = image_groups(dataset)
+    if len(groups) < 2:
+        return None
+    keep = np.zeros(len(dataset.image_ids), bool)
+    keep[groups[0]] = True
+    if any(dataset.image_ids[i] not in framed for i in np.flatnonzero(~keep)):
+        return None
+    main = replace(dataset.subset_images(keep), skipped_images=list(dataset.skipped_images))
+    rest = ~keep[dataset.obs_image]
+    others = {
+        "image": [dataset.image_ids[i] for i in dataset.obs_image[rest]],
+        "target": [dataset.target_ids[j] for j in dataset.obs_target[rest]],
+        "uv_px": dataset.uv_px[rest],
+    }
+    return main, others
+
+
 def calibrate_rig(
     rig: RigDataset,
     options: CalibrationOptions | dict[str, CalibrationOptions] | None = None,
@@ -514,6 +570,7 @@ def calibrate_rig(
         },
     )
 
+    framed = {i for i, f in zip(rig.image_ids, rig.image_frame) if f}
     calibs: dict[str, Calibration] = {}
     failures: list[tuple[str, BaseException]] = []
     for k, cid in enumerate(ids):
@@ -527,7 +584,22 @@ def calibrate_rig(
             say(f"[{cid}] {line}")
 
         try:
-            calibs[cid] = calibrate(ds, per_camera[cid], prefixed)
+            try:
+                calibs[cid] = calibrate(ds, per_camera[cid], prefixed)
+            except DegenerateGeometryError as exc:
+                part = largest_connected_part(ds, exc, framed, joint)
+                if part is None:
+                    raise
+                main, rest = part
+                say(
+                    f"camera {cid}: its own images form groups that share no target; "
+                    f"calibrating it on the largest group ({len(main.image_ids)} images); "
+                    f"the other {len(set(rest['image']))} images join in the rig's joint "
+                    "adjustment through their frames"
+                )
+                calibs[cid] = calibrate(main, per_camera[cid], prefixed)
+                calibs[cid].extra["joint_only_observations"] = rest
+                calibs[cid].statistics["n_images_joint_only"] = len(set(rest["image"]))
         except (DatasetError, ValueError) as exc:  # bad or degenerate input of this camera
             failures.append((cid, exc))
             say(f"camera {cid}: calibration failed: {exc}")
@@ -670,7 +742,12 @@ def assemble_rig(
     for cid in ids:
         calib = calibs[cid]
         R_cam, t_cam = [], []
-        for iid, R, t in zip(calib.image_ids, calib.cam_from_world_R, calib.cam_from_world_t):
+        own = list(zip(calib.image_ids, calib.cam_from_world_R, calib.cam_from_world_t))
+        if jr is not None:
+            # with the images only the rig holds (a camera whose own groups share no target)
+            extra = joint_images(calib, frame_of, jr.rig_from_world)[len(calib.image_ids) :]
+            own += [(i, None, None) for i in extra]
+        for iid, R, t in own:
             frame = frame_of.get(iid)
             if jr is not None:
                 R, t = jr.cam_from_world[iid]
@@ -694,6 +771,7 @@ def assemble_rig(
         stats["model"] = calib.model
         stats["rms_px_rig"] = _rms(res_rig)
         stats["n_observations_rig"] = int(np.isfinite(res_rig).all(axis=1).sum())
+        stats["n_images_rig"] = len(own)
         stats["cam_from_rig_precision"] = precision[cid]
         if jr is not None:
             # the file's intrinsics are the joint ones; the rest of the statistics are
@@ -850,7 +928,13 @@ def run_cli(args, base: CalibrationOptions, progress: Callable[[str], None] | No
         pr = cs["cam_from_rig_precision"]
         line = (
             f"  camera {cid}: {cs['model']}, RMS {cs['rms_px']:.4f} px "
-            f"({_fmt(cs['rms_px_rig'])} with the rig poses), {cs['n_images']} images, "
+            f"({_fmt(cs['rms_px_rig'])} with the rig poses), {cs['n_images']} images"
+            + (
+                f" alone, {cs['n_images_rig']} in the joint adjustment"
+                if cs.get("n_images_rig", cs["n_images"]) != cs["n_images"]
+                else ""
+            )
+            + ", "
             f"{'trusted' if cs.get('trusted', cs['converged']) else 'NOT trusted'}"
         )
         if pr.get("parent") is not None:

@@ -246,18 +246,38 @@ def rig_redundancy(problems: dict[str, BundleProblem], values: gtsam.Values) -> 
 def _with_undetermined(extra: dict) -> dict:
     """A calibration's observations (``extra["observations"]``: ``image``, ``target``,
     ``uv_px``) followed by those it left out as not determined
-    (``extra["undetermined_observations"]``)."""
-    obs = extra["observations"]
-    more = extra.get("undetermined_observations")
-    if not more or not len(more["image"]):
-        return obs
-    return {
-        "image": list(obs["image"]) + list(more["image"]),
-        "target": list(obs["target"]) + list(more["target"]),
-        "uv_px": np.concatenate(
-            [np.asarray(obs["uv_px"], float).reshape(-1, 2), np.asarray(more["uv_px"], float)]
-        ),
-    }
+    (``extra["undetermined_observations"]``) and those of its images that only the
+    rig holds (``extra["joint_only_observations"]``, :func:`.rig.largest_connected_part`).
+    """
+    out = extra["observations"]
+    for name in ("undetermined_observations", "joint_only_observations"):
+        more = extra.get(name)
+        if not more or not len(more["image"]):
+            continue
+        out = {
+            "image": list(out["image"]) + list(more["image"]),
+            "target": list(out["target"]) + list(more["target"]),
+            "uv_px": np.concatenate(
+                [np.asarray(out["uv_px"], float).reshape(-1, 2), np.asarray(more["uv_px"], float)]
+            ),
+        }
+    return out
+
+
+def joint_images(calib: Calibration, frame_of: dict[str, str | None], frames) -> list[str]:
+    """A camera's images in the joint graph: those it calibrated alone, then those only
+    the rig holds whose frame is posed (in ``frames``), in order of first observation:
+    images its own adjustment left out for too few determined observations
+    (``extra["undetermined_observations"]``) and images outside its largest connected
+    group (``extra["joint_only_observations"]``)."""
+    out = list(calib.image_ids)
+    seen = set(out)
+    for name in ("undetermined_observations", "joint_only_observations"):
+        for iid in (calib.extra.get(name) or {}).get("image", []):
+            if iid not in seen and frame_of.get(iid) in frames:
+                seen.add(iid)
+                out.append(iid)
+    return out
 
 
 def adjust_rig_jointly(
@@ -341,30 +361,36 @@ def adjust_rig_jointly(
     # each camera's observations, with those its own calibration left out as not
     # determined (calibrate.without_undetermined_targets): another camera may see them
     obs_of = {cid: _with_undetermined(calibs[cid].extra) for cid in ids}
+    images_of = {cid: joint_images(calibs[cid], frame_of, f_index) for cid in ids}
+    # an image only the rig holds whose frame no other camera posed stays out
+    posed = {cid: np.isin(obs_of[cid]["image"], images_of[cid]) for cid in ids}
     # targets without a sigma seen in fewer than two images (of any camera) are not
     # determined: their observations stay out of the graph
     undetermined = undetermined_targets(
-        [image_global[i] for cid in ids for i in obs_of[cid]["image"]],
-        [t_index[tg] for cid in ids for tg in obs_of[cid]["target"]],
+        [image_global[i] for cid in ids for i, ok in zip(obs_of[cid]["image"], posed[cid]) if ok],
+        [t_index[tg] for cid in ids for tg, ok in zip(obs_of[cid]["target"], posed[cid]) if ok],
         sigma,
     )
     for c, cid in enumerate(ids):
         calib = calibs[cid]
         obs = obs_of[cid]
-        local = {iid: k for k, iid in enumerate(calib.image_ids)}
+        local = {iid: k for k, iid in enumerate(images_of[cid])}
         obs_target = np.array([t_index[tg] for tg in obs["target"]], int)
-        keep = ~undetermined[obs_target]
+        keep = ~undetermined[obs_target] & posed[cid]
         kept[cid] = keep
         obs_target = obs_target[keep]
-        obs_image = np.array([local[i] for i in obs["image"]], int)[keep]
+        obs_image = np.array([local.get(i, -1) for i in obs["image"]], int)[keep]
         uv = np.asarray(obs["uv_px"], float).reshape(-1, 2)[keep]
         camera = calib.camera
         corr = np.zeros_like(uv)
         if camera.correction is not None and len(uv):
             corr = np.asarray(camera.correction.predict(uv), float)
         pose_keys, ext_keys = [], []
-        for iid, R, t in zip(calib.image_ids, calib.cam_from_world_R, calib.cam_from_world_t):
+        own_R = dict(zip(calib.image_ids, calib.cam_from_world_R))
+        own_t = dict(zip(calib.image_ids, calib.cam_from_world_t))
+        for iid in images_of[cid]:
             f = frame_of.get(iid)
+            R, t = own_R.get(iid), own_t.get(iid)
             if f is None:
                 key = pose_key(image_global[iid])
                 own_poses.append(key)
@@ -382,7 +408,7 @@ def adjust_rig_jointly(
             uv_px=uv,
             target_xyz=np.asarray(rig.target_xyz, float),
             target_sigma=sigma,
-            n_images=len(calib.image_ids),
+            n_images=len(images_of[cid]),
             brown_names=brown_names,
             brown_scale_px=camera.brown_scale_px,
             noise=NoiseOptions(
@@ -599,8 +625,7 @@ def adjust_rig_jointly(
         r = np.linalg.norm(res_model, axis=1) / p.noise.sigma_px
         weights[cid] = np.zeros(len(keep))
         weights[cid][keep] = robust_weight(r, Loss.HUBER, loss_threshold)[0]
-        calib = calibs[cid]
-        for iid in calib.image_ids:
+        for iid in images_of[cid]:
             f = frame_of.get(iid)
             if f is None:
                 cam_from_world[iid] = own[pose_key(image_global[iid])]
