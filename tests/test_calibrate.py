@@ -888,3 +888,40 @@ def test_the_default_model_is_not_checked_against_a_reference():
     calib = calibrate(parse_dataset(_small_room("equidistant").dataset), options, lines.append)
     assert "reference_scale_px" not in calib.statistics
     assert not any(ln.startswith("checking the") for ln in lines)
+
+
+def test_station_shift_is_in_units_of_the_reference_station_sigma():
+    """Camera centres ``-R^T t`` compared over the images both posed, RMS distance over
+    RMS sigma; None without the reference's sigmas; the limit names the model."""
+    from helpers import bare_calibration
+
+    from gtsam_sphere.core.camera import SphereCamera
+    from gtsam_sphere.estimation.calibrate import (
+        STATION_SHIFT_LIMIT,
+        station_shift,
+        stations_differ_from_reference,
+    )
+
+    cam = SphereCamera(width=640, height=480, xp=320.0, yp=240.0, c=300.0)
+    rng = np.random.default_rng(2)
+    R = np.stack([np.linalg.qr(rng.standard_normal((3, 3)))[0] for _ in range(3)])
+    R *= np.sign(np.linalg.det(R))[:, None, None]
+    t = rng.standard_normal((3, 3))
+    ref = replace(
+        bare_calibration(cam),
+        image_ids=["a", "b", "c"],
+        cam_from_world_R=R,
+        cam_from_world_t=t,
+        extra={"station_sigma": np.array([0.01, 0.01, 0.01])},
+    )
+    # move the centres of "a" and "b" by 0.03 and 0.04 (t = -R C); "c" is not posed
+    shifted = t.copy()
+    shifted[0] -= R[0] @ np.array([0.03, 0.0, 0.0])
+    shifted[1] -= R[1] @ np.array([0.0, 0.0, 0.04])
+    calib = replace(ref, image_ids=["a", "b"], cam_from_world_R=R[:2], cam_from_world_t=shifted[:2])
+    assert station_shift(calib, ref) == pytest.approx(np.sqrt((0.03**2 + 0.04**2) / 2) / 0.01)
+    assert station_shift(calib, replace(ref, extra={})) is None
+    assert stations_differ_from_reference("sphere+knn", None) == ""
+    assert stations_differ_from_reference("sphere+knn", STATION_SHIFT_LIMIT) == ""
+    why = stations_differ_from_reference("sphere+knn", 23.4)
+    assert "sphere+knn" in why and "23.4 sigma" in why

@@ -940,13 +940,19 @@ def _calibrate_once(
     progress: Callable[[str], None] | None = None,
     init: Initialisation | None = None,
     fold_probe: bool = False,
+    station_sigma: bool = False,
 ) -> tuple[Calibration, Initialisation]:
     """One calibration run (see :func:`calibrate`); returns it and its initialisation.
 
     ``fold_probe``: raise :class:`_FoldsEarly` when the initial lens is the folded
     orthographic one, or when the first adjustment's radial mapping already folds like a
     sphere (the rest of the radial run would only end in the same fold, and
-    :func:`calibrate` then tries the sphere model first)."""
+    :func:`calibrate` then tries the sphere model first).
+
+    ``station_sigma``: also the standard deviation of each image's camera centre (the
+    square root of the trace of its position covariance, dataset units) from the
+    marginal covariance, in ``calib.extra["station_sigma"]`` (M,) (absent when the
+    system is singular)."""
     options = options or CalibrationOptions()
     say = progress or (lambda _line: None)
     rng = np.random.default_rng(options.seed)
@@ -1077,6 +1083,13 @@ def _calibrate_once(
         say("computing the precision of the intrinsics (marginal covariance)")
         cov_theta = intrinsics_covariance(problem, adj.values)
     calib = _result(dataset, problem, adj, correction, history, options, n_input_images)
+    if station_sigma:
+        keys = problem.image_keys()[0]
+        cov = marginal_covariances(problem.build(), adj.values, keys)
+        if cov is not None:
+            # the pose is world_from_cam: its translation block (body axes) is the
+            # camera centre's; the trace does not depend on the axes
+            calib.extra["station_sigma"] = np.sqrt([np.trace(cov[k][3:, 3:]) for k in keys])
     left_out = ~keep_obs
     if left_out.any():
         # kept for the rig's joint adjustment, where another camera may determine them
@@ -1326,7 +1339,7 @@ def _check_against_reference(
         sigma_px=None,
     )
     try:
-        ref, _ = _calibrate_once(dataset, ref_options, None, init)
+        ref, _ = _calibrate_once(dataset, ref_options, None, init, station_sigma=True)
     except (GtsamSphereError, np.linalg.LinAlgError, RuntimeError) as exc:
         say(f"the reference radial adjustment failed ({exc}): no comparison")
         return
@@ -1335,14 +1348,73 @@ def _check_against_reference(
     reference = median_scale_px(ref.extra["observations"]["residual_px"])
     st["reference_scale_px"] = reference
     st["scale_px"] = scale
-    why = fits_worse_than_reference(str(options.model), scale, reference)
+    shift = station_shift(calib, ref)
+    if shift is not None:
+        st["station_shift_vs_reference"] = shift
+    reasons = [
+        why
+        for why in (
+            fits_worse_than_reference(str(options.model), scale, reference),
+            stations_differ_from_reference(str(options.model), shift),
+        )
+        if why
+    ]
     say(
         f"median residual scale {scale:.3f} px, the radial reference's {reference:.3f} px"
-        + (": not trusted" if why else "")
+        + ("" if shift is None else f"; camera centres {shift:.2f} sigma from the reference's")
+        + (": not trusted" if reasons else "")
     )
-    if why:
-        st["distrust"].append(why)
+    if reasons:
+        st["distrust"].extend(reasons)
         st["trusted"] = False
+
+
+def station_shift(calib: Calibration, reference: Calibration) -> float | None:
+    """RMS distance between the camera centres of ``calib`` and of ``reference`` over
+    the images both posed, in units of the reference's RMS station sigma
+    (``reference.extra["station_sigma"]``); None without it or a common image."""
+    sigma = reference.extra.get("station_sigma")
+    if sigma is None:
+        return None
+    ref = {
+        i: (-R.T @ t, s)
+        for i, R, t, s in zip(
+            reference.image_ids, reference.cam_from_world_R, reference.cam_from_world_t, sigma
+        )
+    }
+    d2, s2 = [], []
+    for i, R, t in zip(calib.image_ids, calib.cam_from_world_R, calib.cam_from_world_t):
+        if i in ref:
+            centre, s = ref[i]
+            d2.append(float(np.sum((-R.T @ t - centre) ** 2)))
+            s2.append(float(s) ** 2)
+    if not d2 or not np.isfinite(s2).all() or np.mean(s2) <= 0:
+        return None
+    return float(np.sqrt(np.mean(d2) / np.mean(s2)))
+
+
+#: a model the user chose is not trusted when its camera centres lie further than this
+#: many (RMS) station sigmas from the radial reference's (:func:`stations_differ_from_reference`)
+STATION_SHIFT_LIMIT = 5.0
+
+
+def stations_differ_from_reference(model: str, shift: float | None) -> str:
+    """Why a chosen model's geometry is not the lens's ("" when its camera centres lie
+    within :data:`STATION_SHIFT_LIMIT` station sigmas of the reference's, or ``shift``
+    is None).
+
+    A kNN field can follow a misfit of the model in the image and still move the
+    cameras: the field trades off with ``c`` and the distances to the targets.
+    ``shift`` is :func:`station_shift` against the radial reference of
+    :func:`_check_against_reference`.
+    """
+    if shift is None or shift <= STATION_SHIFT_LIMIT:
+        return ""
+    return (
+        f"the {model} model moves the cameras: their centres lie {shift:.1f} sigma (RMS) "
+        "from those of a radial mapping adjusted from the same start; its correction "
+        f"trades off with the geometry (the default model, {DEFAULT_MODEL}, follows this lens)"
+    )
 
 
 def sphere_fallback_options(options: CalibrationOptions) -> CalibrationOptions:
