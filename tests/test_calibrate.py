@@ -881,6 +881,19 @@ def test_a_chosen_model_that_does_not_follow_the_lens_is_not_trusted():
     assert st["scale_px"] <= 1.2 * st["reference_scale_px"]
 
 
+def test_models_compared_from_one_initialisation_share_their_reference():
+    """``analysis.compare`` calibrates eight models from one initialisation: the radial
+    reference is adjusted once, and each result is compared with the same one."""
+    from gtsam_sphere.estimation.calibrate import initialise
+
+    ds = parse_dataset(_small_room("sphere").dataset)
+    init = initialise(ds, 0)
+    a = calibrate(ds, CalibrationOptions(model="sphere", covariance=False), init=init)
+    b = calibrate(ds, CalibrationOptions(model="brown", covariance=False), init=init)
+    assert len(init.references) == 1
+    assert a.statistics["reference_scale_px"] == b.statistics["reference_scale_px"]
+
+
 def test_the_default_model_is_not_checked_against_a_reference():
     """The radial models are the reference: no second adjustment, no reference scale."""
     lines = []

@@ -667,6 +667,10 @@ class Initialisation:
     folded: bool = False
     alternatives: list[Initialisation] = field(default_factory=list)
     folded_alternative: Callable[[], Initialisation] | None = None
+    #: radial reference calibrations adjusted from this start, by their options' text
+    #: (:func:`_check_against_reference`: models compared from one initialisation,
+    #: ``analysis.compare``'s eight, share one)
+    references: dict[str, Calibration] = field(default_factory=dict, repr=False, compare=False)
 
 
 def initialise(
@@ -1338,11 +1342,16 @@ def _check_against_reference(
         covariance=False,
         sigma_px=None,
     )
-    try:
-        ref, _ = _calibrate_once(dataset, ref_options, None, init, station_sigma=True)
-    except (GtsamSphereError, np.linalg.LinAlgError, RuntimeError) as exc:
-        say(f"the reference radial adjustment failed ({exc}): no comparison")
-        return
+    key = repr(ref_options)
+    if key not in init.references:
+        try:
+            init.references[key], _ = _calibrate_once(
+                dataset, ref_options, None, init, station_sigma=True
+            )
+        except (GtsamSphereError, np.linalg.LinAlgError, RuntimeError) as exc:
+            say(f"the reference radial adjustment failed ({exc}): no comparison")
+            return
+    ref = init.references[key]
     st = calib.statistics
     scale = median_scale_px(calib.extra["observations"]["residual_px"])
     reference = median_scale_px(ref.extra["observations"]["residual_px"])
