@@ -27,7 +27,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
-    """Run ``gtsam-sphere demo``: 0 converged, 1 not."""
+    """Run ``gtsam-sphere demo``: 0 trusted, 1 not to be trusted (as ``calibrate``)."""
     import numpy as np
 
     from ..analysis.evaluate import evaluate_calibration
@@ -91,4 +91,10 @@ def run(args) -> int:
         print(f"  3D RMSE / oracle: {rep.rmse_3d / rows[1][2].rmse_3d:.2f}")
     print()
     print_statistics(calib.statistics)
-    return 0 if calib.statistics["converged"] else 1
+    # the same rule as ``calibrate``: 0 only for a result that can be trusted
+    st = calib.statistics
+    trusted = st.get("trusted", st["converged"])
+    print(f"\n  {'trusted' if trusted else 'NOT trusted'}")
+    for reason in st.get("distrust", []):
+        print(f"    - {reason}")
+    return 0 if trusted else 1
