@@ -15,6 +15,7 @@ from dataclasses import asdict, dataclass, field, replace
 import gtsam
 import numpy as np
 
+from ..core._compat import StrEnum
 from ..core.camera import (
     ALPHA0_RAD,
     DEFAULT_MODEL,
@@ -1109,10 +1110,10 @@ def _calibrate_once(
         calib.statistics["control_sigma_mode"] = (
             "auto" if options.control_sigma == CONTROL_SIGMA_AUTO else "given"
         )
-    calib.statistics["distrust"] = distrust_reasons(
-        calib, cov_theta, options, problem, knn_stable, first_sigma_px
-    )
-    calib.statistics["trusted"] = not calib.statistics["distrust"]
+    findings = distrust_reasons(calib, cov_theta, options, problem, knn_stable, first_sigma_px)
+    calib.statistics["distrust"] = [text for _, text in findings]
+    calib.statistics["distrust_codes"] = [str(code) for code, _ in findings]
+    calib.statistics["trusted"] = not findings
     calib.statistics["first_sigma_px"] = float(first_sigma_px)
     if options.model.uses_knn:
         calib.statistics["knn_rounds"] = int(knn_rounds)
@@ -1361,10 +1362,16 @@ def _check_against_reference(
     if shift is not None:
         st["station_shift_vs_reference"] = shift
     reasons = [
-        why
-        for why in (
-            fits_worse_than_reference(str(options.model), scale, reference),
-            stations_differ_from_reference(str(options.model), shift),
+        (code, why)
+        for code, why in (
+            (
+                Distrust.REFERENCE_FIT,
+                fits_worse_than_reference(str(options.model), scale, reference),
+            ),
+            (
+                Distrust.REFERENCE_STATIONS,
+                stations_differ_from_reference(str(options.model), shift),
+            ),
         )
         if why
     ]
@@ -1374,7 +1381,8 @@ def _check_against_reference(
         + (": not trusted" if reasons else "")
     )
     if reasons:
-        st["distrust"].extend(reasons)
+        st["distrust"].extend(why for _, why in reasons)
+        st.setdefault("distrust_codes", []).extend(str(code) for code, _ in reasons)
         st["trusted"] = False
 
 
@@ -2026,6 +2034,21 @@ def select_terms(
 OUTLIER_SHARE = 0.1
 
 
+class Distrust(StrEnum):
+    """Kinds of reason not to trust a calibration (``statistics.distrust_codes``, one per
+    ``statistics.distrust`` entry): see :func:`distrust_reasons` and
+    :func:`_check_against_reference`."""
+
+    NOT_CONVERGED = "not-converged"
+    SINGULAR = "singular"
+    FOLD = "fold"
+    OUTLIERS = "outliers"
+    KNN_UNSTABLE = "knn-unstable"
+    SIGMA_GROWTH = "sigma-growth"
+    REFERENCE_FIT = "reference-fit"
+    REFERENCE_STATIONS = "reference-stations"
+
+
 #: a fold between two observed incidence angles this far apart (degrees) lies where the
 #: mapping is extrapolated, and :func:`fold_reason` says so
 FOLD_GAP_DEG = 10.0
@@ -2081,8 +2104,9 @@ def distrust_reasons(
     problem: BundleProblem,
     knn_stable: bool = True,
     first_sigma_px: float | None = None,
-) -> list[str]:
-    """Why a calibration should not be trusted (empty when it can be).
+) -> list[tuple[Distrust, str]]:
+    """Why a calibration should not be trusted (empty when it can be), each reason with
+    its kind (:class:`Distrust`).
 
     Not converged (iteration cap, divergence, stalled); singular normal
     equations (an intrinsic parameter not determined by the data); a radial
@@ -2095,29 +2119,47 @@ def distrust_reasons(
     out = []
     if not st["converged"]:
         detail = f": {st['status_message']}" if st.get("status_message") else ""
-        out.append(f"the optimiser did not converge ({st['status']}{detail})")
+        out.append(
+            (Distrust.NOT_CONVERGED, f"the optimiser did not converge ({st['status']}{detail})")
+        )
     if options.covariance and problem.fixed_intrinsics is None and cov_theta is None:
-        out.append("the normal equations are singular: some intrinsics are not determined")
+        out.append(
+            (
+                Distrust.SINGULAR,
+                "the normal equations are singular: some intrinsics are not determined",
+            )
+        )
     cam = calib.camera
     if cam.radial is not None and np.degrees(cam.max_alpha_rad()) < st["max_incidence_deg"]:
         incidence = calib.extra.get("observations", {}).get("incidence_deg")
         out.append(
-            fold_reason(
-                float(np.degrees(cam.max_alpha_rad())),
-                st["max_incidence_deg"],
-                [] if incidence is None else incidence,
+            (
+                Distrust.FOLD,
+                fold_reason(
+                    float(np.degrees(cam.max_alpha_rad())),
+                    st["max_incidence_deg"],
+                    [] if incidence is None else incidence,
+                ),
             )
         )
     if st["n_outliers"] > OUTLIER_SHARE * max(st["n_observations"], 1):
-        out.append(f"{st['n_outliers']} of {st['n_observations']} observations are beyond 5 sigma")
+        out.append(
+            (
+                Distrust.OUTLIERS,
+                f"{st['n_outliers']} of {st['n_observations']} observations are beyond 5 sigma",
+            )
+        )
     if not knn_stable:
         # the default lens models leave a small, smooth field the loop settles on in 2-3
         # rounds; a field still moving after all of them is learning the misfit of a
         # wrong geometry (seed 4 case 05 of the zoo, a 150 deg pinhole posed 56 px off
         # its principal point: 25 rounds, trusted at 31x the oracle's 3D error)
         out.append(
-            "the kNN correction did not become stable (CV and adjustment RMS) within "
-            "its rounds (options.knn max_rounds)"
+            (
+                Distrust.KNN_UNSTABLE,
+                "the kNN correction did not become stable (CV and adjustment RMS) within "
+                "its rounds (options.knn max_rounds)",
+            )
         )
     growth = st["sigma_px"] / first_sigma_px if first_sigma_px else 0.0
     if options.sigma_px is None and growth > SIGMA_GROWTH:
@@ -2125,8 +2167,11 @@ def distrust_reasons(
         # least about as well: a final scale far above the first adjustment's means one
         # of them broke the fit (seed 5 case 05 before RADIAL_START_MAX: 1.02 -> 26.9 px)
         out.append(
-            f"the final robust sigma ({st['sigma_px']:.3f} px) is {growth:.1f} times the "
-            f"first adjustment's ({first_sigma_px:.3f} px)"
+            (
+                Distrust.SIGMA_GROWTH,
+                f"the final robust sigma ({st['sigma_px']:.3f} px) is {growth:.1f} times the "
+                f"first adjustment's ({first_sigma_px:.3f} px)",
+            )
         )
     return out
 

@@ -51,7 +51,7 @@ from ..core.lie import rotation_angle as rotation_angle  # re-exported
 from ..core.robust import MEDIAN_NORM_3D, Loss, robust_weight
 from ..io.calibration import Calibration, RigCalibration
 from ..io.dataset import Dataset, DatasetError, RigDataset, read_json, split_rig
-from .calibrate import CalibrationOptions, calibrate
+from .calibrate import CalibrationOptions, Distrust, calibrate
 from .diagnose import ProblemCode, image_groups
 from .optimize import OptimizerOptions
 from .rig_joint import adjust_rig_jointly, joint_images, precision_from_covariance
@@ -613,6 +613,23 @@ def calibrate_rig(
     return assemble_rig(rig, calibs, per_camera, say, joint, knn_rounds=knn_rounds)
 
 
+#: reasons not to trust a camera's own adjustment that the joint adjustment settles for a
+#: camera whose own images form groups sharing no target (:func:`largest_connected_part`):
+#: alone it saw only its largest group; the joint graph adjusts it with every image
+JOINT_SETTLES = (str(Distrust.NOT_CONVERGED), str(Distrust.SINGULAR))
+
+
+def _joint_determines(cid: str, statistics: dict, jr) -> bool:
+    """The joint adjustment ``jr`` converged with a covariance of camera ``cid``'s
+    intrinsics, and the camera was calibrated alone on part of its images only."""
+    return (
+        jr is not None
+        and statistics.get("n_images_joint_only", 0) > 0
+        and jr.result.converged
+        and jr.intrinsics_sigma.get(cid) is not None
+    )
+
+
 def assemble_rig(
     rig: RigDataset,
     calibs: dict[str, Calibration],
@@ -784,11 +801,19 @@ def assemble_rig(
 
     n_obs = np.array([calibs[c].statistics["n_observations"] for c in ids], float)
     rms = np.array([calibs[c].statistics["rms_px"] for c in ids], float)
-    distrust = [
-        f"camera {cid!r}: {reason}"
-        for cid in ids
-        for reason in calibs[cid].statistics.get("distrust", [])
-    ]
+    distrust, settled = [], []
+    for cid in ids:
+        st = calibs[cid].statistics
+        codes = st.get("distrust_codes", [None] * len(st.get("distrust", [])))
+        for code, reason in zip(codes, st.get("distrust", [])):
+            if code in JOINT_SETTLES and _joint_determines(cid, st, jr):
+                settled.append(
+                    f"camera {cid!r}: its own adjustment on its largest group of images: "
+                    f"{reason}; the joint adjustment, with its other images, converged "
+                    "and determines its intrinsics"
+                )
+            else:
+                distrust.append(f"camera {cid!r}: {reason}")
     if jr is not None and not jr.result.converged:
         distrust.append(f"the joint rig adjustment did not converge ({jr.result.describe()})")
     if (
@@ -821,7 +846,8 @@ def assemble_rig(
             for c in ids
             if precision[c].get("parent") is not None and precision[c]["n_frames"] < 2
         ]
-        + [f"the joint rig adjustment: {note}" for note in (jr.notes if jr else [])],
+        + [f"the joint rig adjustment: {note}" for note in (jr.notes if jr else [])]
+        + settled,
         "frame_spread_rotation_deg_median": float(
             np.median([s["rotation_spread_deg"] for s in frame_spread])
         )
