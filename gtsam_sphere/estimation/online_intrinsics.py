@@ -32,6 +32,8 @@ the measurements once, when a factor is built.
 
 from __future__ import annotations
 
+import functools
+
 import gtsam
 import numpy as np
 
@@ -327,10 +329,24 @@ class IntrinsicsTracker:
         return _estimate_of(self.isam, k).atPose3(k)
 
 
+@functools.cache
+def _keyed_estimate() -> bool:
+    """Whether this GTSAM has ``ISAM2.calculateEstimate(keys)`` (4.3a1, the Python 3.10
+    build, has not). Probed once on an empty ISAM2: a failed call on a real one costs
+    its whole Bayes tree printed into pybind11's message (0.37 s per call on 12 frames;
+    ``test_isam2_tracks_with_an_imprecise_map`` took 221 s there against 3.8 s)."""
+    try:
+        gtsam.ISAM2().calculateEstimate([0])
+    except TypeError:
+        return False
+    except RuntimeError:  # the key is not there: the call exists
+        return True
+    return True
+
+
 def _estimate_of(isam: gtsam.ISAM2, key: int) -> gtsam.Values:
     """iSAM2's estimate of ``key`` alone (constant per frame), or the whole estimate where
-    GTSAM lacks the keyed call (4.3a1, the Python 3.10 build)."""
-    try:
+    GTSAM lacks the keyed call (:func:`_keyed_estimate`)."""
+    if _keyed_estimate():
         return isam.calculateEstimate([key])
-    except TypeError:
-        return isam.calculateEstimate()
+    return isam.calculateEstimate()
