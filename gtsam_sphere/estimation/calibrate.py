@@ -1332,8 +1332,16 @@ def _check_against_reference(
     init: Initialisation,
     calib: Calibration,
 ) -> None:
-    """Adjust the reference radial mapping from ``init`` and add the reason of
-    :func:`fits_worse_than_reference` to ``calib``'s distrust (in place)."""
+    """Compare a chosen ``sphere``/``brown`` model's result with a radial reference.
+
+    The reference is the radial mapping with every term and no kNN, adjusted from
+    ``init`` with the marginal covariance of its poses (shared by the calibrations of
+    one initialisation, :attr:`Initialisation.references`). Adds to ``calib``'s
+    statistics (in place) ``scale_px``, ``reference_scale_px``,
+    ``station_shift_vs_reference``, ``reference_trusted``, and the reasons of
+    :func:`fits_worse_than_reference` and :func:`stations_differ_from_reference` to its
+    distrust. A reference that cannot be adjusted is logged as a warning: no
+    comparison."""
     say(f"checking the {options.model} model against a radial mapping from the same start")
     ref_options = replace(
         options,
@@ -1350,10 +1358,15 @@ def _check_against_reference(
                 dataset, ref_options, None, init, station_sigma=True
             )
         except (GtsamSphereError, np.linalg.LinAlgError, RuntimeError) as exc:
-            say(f"the reference radial adjustment failed ({exc}): no comparison")
+            logger.warning(
+                "the %s model could not be checked: the reference radial adjustment failed (%s)",
+                options.model,
+                exc,
+            )
             return
     ref = init.references[key]
     st = calib.statistics
+    st["reference_trusted"] = bool(ref.statistics["trusted"])
     scale = median_scale_px(calib.extra["observations"]["residual_px"])
     reference = median_scale_px(ref.extra["observations"]["residual_px"])
     st["reference_scale_px"] = reference
