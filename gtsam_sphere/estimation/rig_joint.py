@@ -243,6 +243,12 @@ def rig_redundancy(problems: dict[str, BundleProblem], values: gtsam.Values) -> 
     return {c: red[bounds[k] : bounds[k + 1]] for k, c in enumerate(ids)}
 
 
+#: a camera's observations its own adjustment left out that the joint graph takes back:
+#: targets it could not determine (``calibrate.without_undetermined_targets``) and the
+#: images outside its largest connected group (:func:`.rig.largest_connected_part`)
+HELD_FOR_THE_RIG = ("undetermined_observations", "joint_only_observations")
+
+
 def _with_undetermined(extra: dict) -> dict:
     """A calibration's observations (``extra["observations"]``: ``image``, ``target``,
     ``uv_px``) followed by those it left out as not determined
@@ -250,7 +256,7 @@ def _with_undetermined(extra: dict) -> dict:
     rig holds (``extra["joint_only_observations"]``, :func:`.rig.largest_connected_part`).
     """
     out = extra["observations"]
-    for name in ("undetermined_observations", "joint_only_observations"):
+    for name in HELD_FOR_THE_RIG:
         more = extra.get(name)
         if not more or not len(more["image"]):
             continue
@@ -272,7 +278,7 @@ def joint_images(calib: Calibration, frame_of: dict[str, str | None], frames) ->
     group (``extra["joint_only_observations"]``)."""
     out = list(calib.image_ids)
     seen = set(out)
-    for name in ("undetermined_observations", "joint_only_observations"):
+    for name in HELD_FOR_THE_RIG:
         for iid in (calib.extra.get(name) or {}).get("image", []):
             if iid not in seen and frame_of.get(iid) in frames:
                 seen.add(iid)
