@@ -21,7 +21,9 @@ and ``statistics["trusted"]``. Accuracy is the 3D RMSE after a 7-parameter
 similarity (:mod:`gtsam_sphere.analysis.evaluate`) of the room's check points, or of
 the camera stations for the board and the cube corner (whose targets are
 exact control, so their check points carry no information), and its ratio to
-the oracle's. A second reference, the family oracle, adjusts the same ideal
+the oracle's, both over the points the two adjusted (a calibration leaves out
+the targets it cannot determine; "left out" counts them, ours and the
+oracle's). A second reference, the family oracle, adjusts the same ideal
 measurements with the principal point and principal distance free (the lens
 family and its distortion known): a case over 1.15x the oracle but within it
 of the family oracle loses what estimating three numbers costs on that
@@ -477,18 +479,48 @@ def _stations(calib) -> tuple[list[str], np.ndarray]:
     return list(calib.image_ids), -np.einsum("kji,kj->ki", R, t)
 
 
-def _rmse_3d(calib, sim, what: str) -> float:
-    """3D RMSE (metres) after a similarity: check points or camera stations."""
-    from gtsam_sphere.analysis.evaluate import evaluate_calibration, evaluate_checkpoints
+def _adjusted(calib, what: str) -> tuple[list[str], np.ndarray]:
+    """The adjusted points the metric reads: targets, or camera stations."""
+    if what == "checkpoints":
+        return list(calib.target_ids), np.asarray(calib.target_xyz, float)
+    return _stations(calib)
+
+
+def _rmse_3d(calib, sim, what: str, among=None) -> float:
+    """3D RMSE (metres) after a similarity: check points or camera stations.
+
+    ``among``: another calibration; only the points both adjusted count (a calibration
+    leaves out targets it cannot determine, and the two of a ratio may leave out
+    different ones)."""
+    from gtsam_sphere.analysis.evaluate import evaluate_checkpoints
 
     if what == "checkpoints":
         ids = [t["id"] for t in sim.checkpoints["targets"]]
         xyz = np.array([t["xyz"] for t in sim.checkpoints["targets"]], float)
-        return float(evaluate_calibration(calib, ids, xyz).rmse_3d)
-    ids = [im["id"] for im in sim.truth["images"]]
-    xyz = np.array([im["centre_world"] for im in sim.truth["images"]], float)
-    adj_ids, adj_xyz = _stations(calib)
+    else:
+        ids = [im["id"] for im in sim.truth["images"]]
+        xyz = np.array([im["centre_world"] for im in sim.truth["images"]], float)
+    adj_ids, adj_xyz = _adjusted(calib, what)
+    if among is not None:
+        both = set(adj_ids) & set(_adjusted(among, what)[0])
+        keep = [k for k, i in enumerate(ids) if i in both]
+        ids, xyz = [ids[k] for k in keep], xyz[keep]
     return float(evaluate_checkpoints(adj_ids, adj_xyz, ids, xyz).rmse_3d)
+
+
+def _missing(calib, sim, what: str) -> int:
+    """Check points (or stations) the calibration did not adjust."""
+    if what == "checkpoints":
+        ids = [t["id"] for t in sim.checkpoints["targets"]]
+    else:
+        ids = [im["id"] for im in sim.truth["images"]]
+    return len(set(ids) - set(_adjusted(calib, what)[0]))
+
+
+def _ratio(calib, other, sim, what: str) -> tuple[float, float]:
+    """``other``'s 3D RMSE and ``calib``'s over it, on the points both adjusted."""
+    theirs = _rmse_3d(other, sim, what, among=calib)
+    return theirs, _rmse_3d(calib, sim, what, among=other) / max(theirs, 1e-15)
 
 
 def _axis_scale_px(lens) -> float:
@@ -582,21 +614,23 @@ def run_case(case: Case, workdir: Path, verbose: bool = False) -> dict:
         c_true = _axis_scale_px(lens)
         row["c_error_pct"] = float(100.0 * (cam.c - c_true) / c_true)
         row["rmse_3d_m"] = _rmse_3d(calib, sim, row["metric"])
+        row["n_missing"] = _missing(calib, sim, row["metric"])
     except Exception as exc:  # noqa: BLE001 - a failed case is a row, never the end
         row["error"] = f"{type(exc).__name__}: {' '.join(str(exc).split())}"[:300]
         return row
     try:
+        # ratios on the points both calibrations adjusted
         oracle = oracle_calibration(sim, case.seed)
-        row["oracle_rmse_3d_m"] = _rmse_3d(oracle, sim, row["metric"])
-        row["ratio"] = row["rmse_3d_m"] / max(row["oracle_rmse_3d_m"], 1e-15)
+        row["oracle_rmse_3d_m"], row["ratio"] = _ratio(calib, oracle, sim, row["metric"])
+        row["oracle_n_missing"] = _missing(oracle, sim, row["metric"])
         family = oracle_calibration(sim, case.seed, known_lens=False)
-        row["family_oracle_rmse_3d_m"] = _rmse_3d(family, sim, row["metric"])
-        row["family_ratio"] = row["rmse_3d_m"] / max(row["family_oracle_rmse_3d_m"], 1e-15)
+        row["family_oracle_rmse_3d_m"], row["family_ratio"] = _ratio(
+            calib, family, sim, row["metric"]
+        )
         if case.error_field_px:
             blind = oracle_calibration(sim, case.seed, known_field=False)
-            row["field_blind_oracle_rmse_3d_m"] = _rmse_3d(blind, sim, row["metric"])
-            row["field_blind_ratio"] = row["rmse_3d_m"] / max(
-                row["field_blind_oracle_rmse_3d_m"], 1e-15
+            row["field_blind_oracle_rmse_3d_m"], row["field_blind_ratio"] = _ratio(
+                calib, blind, sim, row["metric"]
             )
     except Exception as exc:  # noqa: BLE001
         row["oracle_error"] = f"{type(exc).__name__}: {' '.join(str(exc).split())}"[:300]
@@ -623,9 +657,9 @@ def print_table(rows: list[dict]) -> None:
     print(
         "| case | family | fov | r/short | pp % | scene | n_obs | ok | 3D mm (of) | oracle mm "
         "| ratio | family ratio | field-blind ratio | time s | s/1k obs | cpu s/1k obs "
-        "| hypothesis | dpp px | dc % |"
+        "| hypothesis | dpp px | dc % | left out (oracle) |"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         what = {"checkpoints": "cp", "stations": "stn"}.get(r.get("metric", ""), "")
         rmse = r.get("rmse_3d_m")
@@ -641,7 +675,8 @@ def print_table(rows: list[dict]) -> None:
             f"| {_fmt(r.get('time_s'), '.1f')} | {_fmt(r.get('time_per_1k_obs_s'), '.2f')} "
             f"| {_fmt(r.get('cpu_per_1k_obs_s'), '.2f')} "
             f"| {r.get('hypothesis', '-')} | {_fmt(r.get('pp_error_px'), '.2f')} "
-            f"| {_fmt(r.get('c_error_pct'), '+.3f')} |"
+            f"| {_fmt(r.get('c_error_pct'), '+.3f')} "
+            f"| {r.get('n_missing', '-')} ({r.get('oracle_n_missing', '-')}) |"
         )
     for r in rows:
         if "error" in r:

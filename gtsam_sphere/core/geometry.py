@@ -127,6 +127,65 @@ def fit_similarity(src: np.ndarray, dst: np.ndarray, with_scale: bool = True) ->
     return Similarity(scale, R, t)
 
 
+#: :func:`fit_similarity_trimmed` leaves out of the fit the source points farther than
+#: this many times the median distance from the source's median point
+SOURCE_SPREAD_LIMIT = 20.0
+#: and, while it iterates, the points whose misfit exceeds this many times the median
+#: misfit of the points kept
+MISFIT_LIMIT = 5.0
+
+
+def fit_similarity_trimmed(
+    src: np.ndarray, dst: np.ndarray, max_rounds: int = 10
+) -> tuple[Similarity, np.ndarray]:
+    """:func:`fit_similarity` that a few wild points cannot pull.
+
+    A datum transform (a free network S-transformed onto its approximate coordinates),
+    not an evaluation: a point that flew off in the adjustment (a free target whose
+    second ray was a blunder, 5 km away in a 7 m room) took the least-squares scale of
+    all the others to 5e-4. Points farther than ``SOURCE_SPREAD_LIMIT`` times the
+    median distance from the source's median point are left out of the first fit; then
+    points whose misfit ``|S(src) - dst|`` exceeds ``MISFIT_LIMIT`` times the median
+    misfit of the points kept are left out of the next, until the set stops changing.
+    A set that would drop below half the points (or 3) is not taken.
+
+    Parameters
+    ----------
+    src, dst : ndarray, shape (N, 3)
+        Corresponding points, N >= 3 and not collinear.
+    max_rounds : int
+        Refits at most.
+
+    Returns
+    -------
+    Similarity
+        Fitted on the points kept.
+    kept : ndarray of bool, shape (N,)
+        The points the last fit used.
+    """
+    src = check_points(src, "src")
+    dst = check_points(dst, "dst")
+    if src.shape != dst.shape:
+        raise ValueError(f"src and dst shapes differ: {src.shape} vs {dst.shape}")
+    n = len(src)
+    need = max(3, (n + 1) // 2)
+    kept = np.ones(n, bool)
+    spread = np.linalg.norm(src - np.median(src, axis=0), axis=1)
+    core = spread <= SOURCE_SPREAD_LIMIT * np.median(spread)
+    if core.sum() >= need:
+        kept = core
+    sim = fit_similarity(src[kept], dst[kept])
+    for _ in range(max_rounds):
+        misfit = np.linalg.norm(sim.apply(src) - dst, axis=1)
+        limit = MISFIT_LIMIT * np.median(misfit[kept])
+        nxt = misfit <= limit if limit > 0 else kept
+        if nxt.sum() < need or np.array_equal(nxt, kept):
+            break
+        kept = nxt
+        sim = fit_similarity(src[kept], dst[kept])
+    return sim, kept
+
+
 def incidence_deg(points_cam: np.ndarray) -> np.ndarray:
     """Angle (deg, in [0, 180]) between camera-frame points or rays (N, 3) and the axis +z.
 

@@ -30,7 +30,7 @@ from ..core.camera import (
     radial_warp,
 )
 from ..core.errors import GtsamSphereError
-from ..core.geometry import fit_similarity, incidence_deg
+from ..core.geometry import fit_similarity_trimmed, incidence_deg
 from ..core.robust import MAD_RELATIVE_SE, MAD_TO_SIGMA, Loss, robust_sigma_px, robust_weight
 from ..io.calibration import Calibration
 from ..io.dataset import Dataset
@@ -40,6 +40,7 @@ from .graph import (
     BundleProblem,
     Datum,
     NoiseOptions,
+    intersection_sigma,
     point_key,
     pose_key,
 )
@@ -861,6 +862,85 @@ def without_undetermined_targets(
     return out, keep_obs, keep_img
 
 
+UNFIXED_REASON = (
+    "target without a sigma whose rays, outliers set aside, do not fix its position "
+    "(parallel, or weighted down to nothing): its adjusted coordinates are not determined"
+)
+LOST_TO_OUTLIERS_REASON = (
+    "target without a sigma seen in fewer than two images once the outliers are set aside: "
+    "its adjusted coordinates are not determined"
+)
+
+
+def targets_lost_to_outliers(dataset: Dataset, outlier: np.ndarray) -> np.ndarray:
+    """Targets without a sigma that only outliers made look determined.
+
+    :func:`without_undetermined_targets` leaves out the targets seen in one image before
+    the adjustment. A target seen in two whose second ray is a blunder is kept, and the
+    robust adjustment then sets that ray aside: the target is free along the other and
+    drifts (zoo stress 214 s32, a free room of 8 images: six targets 0.5-6 km away,
+    whose least-squares S-transform onto the approximate coordinates shrank the whole
+    network 2000 times). Those targets are left out of the adjusted targets and listed
+    with :data:`LOST_TO_OUTLIERS_REASON`; their observations stay in the file.
+
+    Parameters
+    ----------
+    dataset : Dataset
+        The adjusted observations.
+    outlier : ndarray of bool, shape (N,)
+        The observations classified as blunders.
+
+    Returns
+    -------
+    ndarray of bool, shape (T,)
+        Observed targets without a sigma seen in fewer than two images by the other
+        observations.
+    """
+    outlier = np.asarray(outlier, bool)
+    if not outlier.any():
+        return np.zeros(len(dataset.target_ids), bool)
+    good = ~outlier
+    lost = undetermined_targets(
+        dataset.obs_image[good], dataset.obs_target[good], dataset.target_sigma
+    )
+    lost &= np.bincount(dataset.obs_target, minlength=len(dataset.target_ids)) > 0
+    # exact targets are not variables (sigma 0 is finite): never lost
+    return lost
+
+
+#: :func:`weak_targets`: a target whose intersection sigma exceeds this fraction of the
+#: targets' extent is weakly determined
+WEAK_TARGET_FRACTION = 0.02
+
+
+def weak_targets(xyz: np.ndarray, meet_sigma: np.ndarray) -> tuple[float, np.ndarray]:
+    """Targets whose rays fix them poorly, relative to the size of the network.
+
+    Parameters
+    ----------
+    xyz : ndarray, shape (T, 3)
+        Adjusted coordinates (dataset units).
+    meet_sigma : ndarray, shape (T,)
+        :func:`~gtsam_sphere.estimation.graph.intersection_sigma` (dataset units; NaN
+        for exact targets).
+
+    Returns
+    -------
+    limit : float
+        :data:`WEAK_TARGET_FRACTION` of the extent (the 5-95 percentile box's
+        diagonal) of the targets, dataset units.
+    weak : ndarray of bool, shape (T,)
+        ``meet_sigma > limit``.
+    """
+    xyz = np.asarray(xyz, float).reshape(-1, 3)
+    if len(xyz) == 0:
+        return 0.0, np.zeros(0, bool)
+    extent = float(np.linalg.norm(np.percentile(xyz, 95, axis=0) - np.percentile(xyz, 5, axis=0)))
+    limit = WEAK_TARGET_FRACTION * extent
+    sig = np.asarray(meet_sigma, float)
+    return limit, np.isfinite(sig) & (sig > limit) | np.isposinf(sig)
+
+
 class _FoldsEarly(Exception):
     """A radial run stopped early: the lens folds like a sphere (the message says how).
 
@@ -1088,6 +1168,28 @@ def _calibrate_once(
         say("computing the precision of the intrinsics (marginal covariance)")
         cov_theta = intrinsics_covariance(problem, adj.values)
     calib = _result(dataset, problem, adj, correction, history, options, n_input_images)
+    lost = calib.extra["undetermined_targets"]
+    if lost:
+        names = ", ".join(entry["id"] for entry in lost[:5]) + (", ..." if len(lost) > 5 else "")
+        logger.warning(
+            "%d targets without a sigma are not determined once the outliers are set aside "
+            "(%s): seen in fewer than two images, or rays that do not fix them; left out of "
+            "the adjusted targets (listed in undetermined_targets)",
+            len(lost),
+            names,
+        )
+    n_weak = calib.statistics["n_targets_weak"]
+    if n_weak:
+        logger.warning(
+            "%d of %d adjusted targets are weakly determined: their rays meet at small "
+            "angles (intersection sigma, poses and lens held, above %.4g %s, %g %% of the "
+            "targets' extent; listed in target_precision)",
+            n_weak,
+            len(calib.target_ids),
+            calib.statistics["weak_target_limit"],
+            dataset.units,
+            100 * WEAK_TARGET_FRACTION,
+        )
     if station_sigma:
         keys = problem.image_keys()[0]
         cov = marginal_covariances(problem.build(), adj.values, keys)
@@ -2305,15 +2407,6 @@ def _result(dataset, problem, adj, correction, history, options, n_input_images)
     camera = camera_from_theta(problem, theta, dataset.width, dataset.height, correction)
     R, t = _poses_from_values(values, len(dataset.image_ids))
     xyz = adjusted_target_xyz(problem, values)
-    if problem.datum is Datum.FREE:
-        free = problem.free_targets
-        sim = fit_similarity(xyz[free], dataset.target_xyz[free])
-        xyz[free] = sim.apply(xyz[free])
-        R, t = sim.apply_to_cam_from_world(R, t)
-    used_targets = np.unique(dataset.obs_target)
-    pc = np.einsum("nij,nj->ni", R[dataset.obs_image], xyz[dataset.obs_target])
-    pc += t[dataset.obs_image]
-    inc = incidence_deg(pc)
     # the adjustment's residuals keep the radial Brown terms' corrected coordinates
     # (core.camera.sphere_residual); statistics and files report raw pixels (OpenCV's
     # definition); sigma, weights and outliers stay in the adjustment's own coordinates
@@ -2324,14 +2417,6 @@ def _result(dataset, problem, adj, correction, history, options, n_input_images)
     r_norm = np.linalg.norm(res, axis=1)
     sigma = adj.sigma_px
     whitened2 = (r_model / sigma) ** 2
-    n_obs = dataset.n_observations
-    n_priors = int(
-        np.sum(
-            np.isfinite(problem.target_sigma[problem.free_targets])
-            & (problem.target_sigma[problem.free_targets] > 0)
-        )
-    )
-    redundancy = 2 * n_obs + 3 * n_priors + problem.n_datum_constraints() - problem.n_unknowns()
     # a blunder is gross relative to its neighbours, not only to the global sigma: a
     # residual beyond 5 sigma that its image neighbours share (a lens or board error the
     # model does not hold, large at the border of a wide lens) is systematic, reported
@@ -2343,6 +2428,41 @@ def _result(dataset, problem, adj, correction, history, options, n_input_images)
 
         outlier &= ~consistent_with_neighbours(dataset.uv_px, res_model)
     systematic = gross & ~outlier
+    # each target's precision where its rays meet (poses and lens held), outliers out
+    weight = np.where(outlier, 0.0, adj.weights) / sigma**2
+    meet_sigma = intersection_sigma(
+        problem.target_jacobians(values), dataset.obs_target, weight, dataset.target_sigma
+    )
+    meet_sigma[dataset.target_sigma == 0] = 0.0  # exact: held
+    lost_reason = dict.fromkeys(
+        np.flatnonzero(targets_lost_to_outliers(dataset, outlier)).tolist(),
+        LOST_TO_OUTLIERS_REASON,
+    )
+    for j in np.flatnonzero(np.isposinf(meet_sigma)).tolist():
+        lost_reason.setdefault(j, UNFIXED_REASON)
+    lost = np.zeros(len(dataset.target_ids), bool)
+    lost[list(lost_reason)] = True
+    if problem.datum is Datum.FREE:
+        free = problem.free_targets
+        fit = free[~lost[free]] if np.sum(~lost[free]) >= 3 else free
+        sim, _ = fit_similarity_trimmed(xyz[fit], dataset.target_xyz[fit])
+        xyz[free] = sim.apply(xyz[free])
+        R, t = sim.apply_to_cam_from_world(R, t)
+        meet_sigma *= sim.scale
+    observed = np.unique(dataset.obs_target)
+    used_targets = observed[~lost[observed]]
+    weak_limit, weak = weak_targets(xyz[used_targets], meet_sigma[used_targets])
+    pc = np.einsum("nij,nj->ni", R[dataset.obs_image], xyz[dataset.obs_target])
+    pc += t[dataset.obs_image]
+    inc = incidence_deg(pc)
+    n_obs = dataset.n_observations
+    n_priors = int(
+        np.sum(
+            np.isfinite(problem.target_sigma[problem.free_targets])
+            & (problem.target_sigma[problem.free_targets] > 0)
+        )
+    )
+    redundancy = 2 * n_obs + 3 * n_priors + problem.n_datum_constraints() - problem.n_unknowns()
     # the field the data support (SphereCamera.valid_alpha_rad): the widest observation
     # that is not a blunder
     seen = inc[~outlier] if (~outlier).any() else inc
@@ -2361,6 +2481,9 @@ def _result(dataset, problem, adj, correction, history, options, n_input_images)
         "n_images_skipped": len(dataset.skipped_images),
         "n_images_input": n_input_images + 0,
         "n_targets": int(len(used_targets)),
+        "n_targets_undetermined": int(lost.sum()),
+        "n_targets_weak": int(weak.sum()),
+        "weak_target_limit": float(weak_limit),
         "n_downweighted": int(len(down)),
         "n_outliers": int(outlier.sum()),
         "n_systematic": int(systematic.sum()),
@@ -2406,6 +2529,19 @@ def _result(dataset, problem, adj, correction, history, options, n_input_images)
         ],
         "outliers": classify_outliers(camera, dataset, R, t, xyz, res, np.flatnonzero(outlier)),
         "skipped_images": [{"id": i, "reason": why} for i, why in dataset.skipped_images],
+        "target_precision": {
+            "target": [tids[j] for j in used_targets],
+            "intersection_sigma": meet_sigma[used_targets],
+            "weak": weak,
+        },
+        "undetermined_targets": [
+            {
+                "id": tids[j],
+                "reason": lost_reason[j],
+                "n_observations": int(np.sum(dataset.obs_target == j)),
+            }
+            for j in sorted(lost_reason)
+        ],
         "dropped_observations": [
             {"image": i, "target": tg, "reason": why} for i, tg, why in dataset.dropped
         ],

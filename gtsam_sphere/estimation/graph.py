@@ -325,19 +325,84 @@ def observation_redundancy(
     J = np.asarray(J, float)
     obs_target = np.asarray(obs_target, np.intp)
     w = 1.0 / np.square(np.asarray(sigma_px, float))
-    n_t = len(target_sigma)
-    info = np.zeros((n_t, 3, 3))
-    np.add.at(info, obs_target, w[:, None, None] * np.einsum("nki,nkj->nij", J, J))
-    sig = np.asarray(target_sigma, float)
-    has_prior = np.isfinite(sig) & (sig > 0)
-    prior = np.zeros(len(sig))
-    prior[has_prior] = 1.0 / np.square(sig[has_prior])
-    info += prior[:, None, None] * np.eye(3)
+    info = target_information(J, obs_target, w, target_sigma)
     used = np.unique(obs_target)
     cov = np.zeros_like(info)
     cov[used] = np.linalg.pinv(info[used], hermitian=True)
     h = w * np.einsum("nki,nij,nkj->n", J, cov[obs_target], J)
     return np.clip(2.0 - h, 0.0, 2.0)
+
+
+def target_information(
+    J: np.ndarray, obs_target: np.ndarray, weight: np.ndarray, target_sigma: np.ndarray
+) -> np.ndarray:
+    """Information of each target with the poses and intrinsics held, (T, 3, 3).
+
+    ``N_j = sum_k w_k J_k^T J_k + I / sigma_j^2`` (the prior term where the target has a
+    sigma): the normal-equation block of target ``j`` alone.
+
+    Parameters
+    ----------
+    J : ndarray, shape (N, 2, 3)
+        Derivative of each predicted pixel by its target, px per dataset unit
+        (:meth:`BundleProblem.target_jacobians`; zero for exact targets).
+    obs_target : ndarray of int, shape (N,)
+    weight : ndarray, shape (N,)
+        Weight of each observation, 1 / px^2 (robust weight / sigma_px^2; 0 leaves it
+        out).
+    target_sigma : ndarray, shape (T,)
+        Prior sigma of the targets (dataset units; 0 exact, NaN none).
+
+    Returns
+    -------
+    ndarray, shape (T, 3, 3)
+        In 1 / dataset unit^2.
+    """
+    J = np.asarray(J, float)
+    w = np.asarray(weight, float)
+    info = np.zeros((len(target_sigma), 3, 3))
+    np.add.at(
+        info, np.asarray(obs_target, np.intp), w[:, None, None] * np.einsum("nki,nkj->nij", J, J)
+    )
+    sig = np.asarray(target_sigma, float)
+    has_prior = np.isfinite(sig) & (sig > 0)
+    prior = np.zeros(len(sig))
+    prior[has_prior] = 1.0 / np.square(sig[has_prior])
+    return info + prior[:, None, None] * np.eye(3)
+
+
+def intersection_sigma(
+    J: np.ndarray, obs_target: np.ndarray, weight: np.ndarray, target_sigma: np.ndarray
+) -> np.ndarray:
+    """Standard deviation of each target along its worst direction, poses and lens held.
+
+    ``1 / sqrt(smallest eigenvalue of N_j)`` (:func:`target_information`): how well the
+    target's rays (and its prior) fix it where they meet. Two rays at angle ``g`` from
+    distance ``d`` through a lens of scale ``f`` px with noise ``s`` px give
+    ``(d / f) s / sqrt(1 - cos g)``: large where the rays meet at small angles (the
+    depth of a target seen from close stations). The poses' and the lens's own
+    uncertainty come on top: a lower bound of the full marginal sigma.
+
+    Parameters
+    ----------
+    J, obs_target, weight, target_sigma
+        As :func:`target_information`.
+
+    Returns
+    -------
+    ndarray, shape (T,)
+        Dataset units; NaN for targets not observed or exact (``target_sigma`` 0), inf
+        where the information is singular (one ray).
+    """
+    info = target_information(J, obs_target, weight, target_sigma)
+    out = np.full(len(info), np.nan)
+    sig = np.asarray(target_sigma, float)
+    used = np.unique(np.asarray(obs_target, np.intp))
+    used = used[~(np.isfinite(sig[used]) & (sig[used] == 0))]
+    low = np.linalg.eigvalsh(info[used])[:, 0]
+    scale = np.maximum(np.abs(info[used]).max(axis=(1, 2)), 1e-300)
+    out[used] = np.where(low > 1e-12 * scale, 1.0 / np.sqrt(np.maximum(low, 1e-300)), np.inf)
+    return out
 
 
 def choose_minimal_constraint_points(xyz: np.ndarray) -> tuple[int, int, int]:

@@ -44,7 +44,7 @@ import gtsam
 import numpy as np
 
 from ..core.camera import WARP_TERM, SphereCamera
-from ..core.geometry import fit_similarity
+from ..core.geometry import fit_similarity_trimmed
 from ..core.robust import robust_weight
 from ..io.calibration import Calibration
 from ..io.dataset import RigDataset
@@ -599,8 +599,9 @@ def adjust_rig_jointly(
     own = {k: _pose(final.atPose3(k).inverse()) for k in own_poses}
     scale = 1.0
     if datum_problem.datum is Datum.FREE:
-        # as the single-camera result: S-transformed onto the approximate coordinates
-        sim = fit_similarity(xyz[free], np.asarray(rig.target_xyz, float)[free])
+        # as the single-camera result: S-transformed onto the approximate coordinates,
+        # a fit that targets drifted off along one ray cannot pull
+        sim, _ = fit_similarity_trimmed(xyz[free], np.asarray(rig.target_xyz, float)[free])
         xyz[free] = sim.apply(xyz[free])
         rig_R, rig_t = sim.apply_to_cam_from_world(rig_R.reshape(-1, 3, 3), rig_t.reshape(-1, 3))
         for k, (R, t) in own.items():
