@@ -202,3 +202,41 @@ def test_weak_targets_are_measured_against_the_network_extent():
     limit, weak = weak_targets(xyz, sig)
     assert limit == pytest.approx(WEAK_TARGET_FRACTION * extent)
     assert weak.tolist()[:3] == [True, True, False] and weak.sum() == 2
+
+
+def test_rig_joint_adjustment_leaves_out_a_target_a_blunder_left_on_one_ray():
+    """The joint rig graph applies the same rule: a free target kept in two images of the
+    rig, one of its rays 200 px off, is not in the joint result's targets but listed;
+    the free rig's S-transform keeps its scale (frames within millimetres)."""
+    from test_rig_joint import _in_model_rig
+
+    from gtsam_sphere.estimation.rig_joint import adjust_rig_jointly
+
+    rig, truth, calibs, ext0, frames0, xyz0 = _in_model_rig(0, n_surveyed=0)
+    victim = "T007"
+    kept = 0
+    for cal in calibs.values():
+        obs = cal.extra["observations"]
+        keep = []
+        for k, tg in enumerate(obs["target"]):
+            if tg != victim:
+                keep.append(k)
+            elif kept < 2:
+                keep.append(k)
+                kept += 1
+                if kept == 2:
+                    obs["uv_px"][k] = obs["uv_px"][k] + [200.0, 0.0]
+        cal.extra["observations"] = {
+            "image": [obs["image"][k] for k in keep],
+            "target": [obs["target"][k] for k in keep],
+            "uv_px": np.asarray(obs["uv_px"])[keep],
+        }
+    assert kept == 2
+    jr = adjust_rig_jointly(rig, calibs, ext0, frames0, xyz0)
+    assert jr.undetermined_targets == [victim]
+    assert victim not in jr.target_xyz and len(jr.target_xyz) > 100
+    assert any("not determined" in note for note in jr.notes)
+    # free rig: S-transformed onto the approximate coordinates (2 cm noise)
+    for f, (R, t) in jr.rig_from_world.items():
+        R0, t0 = truth["frames"][f]
+        assert np.linalg.norm(-R.T @ t - (-R0.T @ t0)) < 0.02

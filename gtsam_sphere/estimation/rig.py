@@ -51,7 +51,7 @@ from ..core.lie import rotation_angle as rotation_angle  # re-exported
 from ..core.robust import MEDIAN_NORM_3D, Loss, robust_weight
 from ..io.calibration import Calibration, RigCalibration
 from ..io.dataset import Dataset, DatasetError, RigDataset, read_json, split_rig
-from .calibrate import CalibrationOptions, Distrust, calibrate
+from .calibrate import LOST_TO_OUTLIERS_REASON, CalibrationOptions, Distrust, calibrate
 from .diagnose import ProblemCode, image_groups
 from .optimize import OptimizerOptions
 from .rig_joint import adjust_rig_jointly, joint_images, precision_from_covariance
@@ -733,7 +733,15 @@ def assemble_rig(
         cam_from_rig = jr.cam_from_rig
         rig_R = [jr.rig_from_world[f][0] for f in frame_ids]
         rig_t = [jr.rig_from_world[f][1] for f in frame_ids]
-        xyz_of = {tid: jr.target_xyz.get(tid, xyz_of[tid]) for tid in target_ids}
+        # the joint graph's targets: with those each camera saw once (no camera's own
+        # result has them) and without those it cannot determine either
+        gone = set(jr.undetermined_targets)
+        target_ids = [
+            tid
+            for tid in rig.target_ids
+            if (tid in xyz_of or tid in jr.target_xyz) and tid not in gone
+        ]
+        xyz_of = {tid: jr.target_xyz.get(tid, xyz_of.get(tid)) for tid in target_ids}
         cameras = jr.cameras
         for cid in ids[1:]:
             cov = jr.cam_from_rig_covariance[cid]
@@ -835,6 +843,8 @@ def assemble_rig(
         "n_frames": len(frame_ids),
         "n_images": len(image_ids),
         "n_images_skipped": int(sum(calibs[c].statistics["n_images_skipped"] for c in ids)),
+        "n_targets": len(target_ids),
+        "n_targets_undetermined": len(jr.undetermined_targets) if jr is not None else 0,
         "converged": all(calibs[c].statistics["converged"] for c in ids)
         and (jr is None or jr.result.converged),
         "trusted": not distrust,
@@ -887,6 +897,10 @@ def assemble_rig(
         extra={
             "camera_results": camera_results,
             "skipped_images": [{"id": i, "reason": why} for i, why in rig.skipped_images],
+            "undetermined_targets": [
+                {"id": tid, "reason": LOST_TO_OUTLIERS_REASON}
+                for tid in (jr.undetermined_targets if jr is not None else [])
+            ],
             "source": rig.source,
         },
     )

@@ -48,7 +48,7 @@ from ..core.geometry import fit_similarity_trimmed
 from ..core.robust import robust_weight
 from ..io.calibration import Calibration
 from ..io.dataset import RigDataset
-from .correct import train_correction
+from .correct import consistent_with_neighbours, train_correction
 from .diagnose import undetermined_targets
 from .graph import (
     BundleProblem,
@@ -180,6 +180,9 @@ class JointRigResult:
         ``2 N + 3 (weighted targets) + 7 (free network) - unknowns``.
     notes : list of str
         What the adjustment left out or could not compute (no covariance).
+    undetermined_targets : list of str
+        Targets without a sigma seen in fewer than two images once the outliers are set
+        aside (not in ``target_xyz``).
     """
 
     cam_from_rig: dict[str, Pose]
@@ -198,6 +201,7 @@ class JointRigResult:
     variance_factor: float = float("nan")
     redundancy: int = 0
     notes: list[str] = field(default_factory=list)
+    undetermined_targets: list[str] = field(default_factory=list)
 
 
 def precision_from_covariance(cov: np.ndarray, t: np.ndarray) -> dict:
@@ -587,6 +591,27 @@ def adjust_rig_jointly(
                 cov = inflate * marginal[extrinsics_key(c)]
                 cov_ext[cid] = cam_from_rig_covariance(final.atPose3(extrinsics_key(c)), cov)
 
+    # targets without a sigma left on one ray once the outliers are set aside (the
+    # single-camera rule, calibrate.targets_lost_to_outliers): not determined
+    res_model_of = {cid: p.residuals_px(final) for cid, p in problems.items()}
+    good_image, good_target, offset = [], [], 0
+    for cid, p in problems.items():
+        r = np.linalg.norm(res_model_of[cid], axis=1)
+        outlier = r > 5.0 * p.noise.sigma_px
+        if outlier.any():
+            outlier &= ~consistent_with_neighbours(raw_uv[cid], res_model_of[cid])
+        # an image per camera and image (two cameras of one frame see from two places)
+        good_image.append(offset + p.obs_image[~outlier])
+        good_target.append(p.obs_target[~outlier])
+        offset += p.n_images
+    lost = undetermined_targets(np.concatenate(good_image), np.concatenate(good_target), sigma)
+    lost &= np.bincount(obs_target, minlength=len(sigma)) > 0
+    if lost.any():
+        notes.append(
+            f"{int(lost.sum())} targets without a sigma seen in fewer than two images once "
+            "the outliers are set aside are not determined: left out of the targets"
+        )
+
     # results, in the files' convention
     xyz = np.asarray(rig.target_xyz, float).copy()
     for j in free:
@@ -601,7 +626,8 @@ def adjust_rig_jointly(
     if datum_problem.datum is Datum.FREE:
         # as the single-camera result: S-transformed onto the approximate coordinates,
         # a fit that targets drifted off along one ray cannot pull
-        sim, _ = fit_similarity_trimmed(xyz[free], np.asarray(rig.target_xyz, float)[free])
+        fit = free[~lost[free]] if np.sum(~lost[free]) >= 3 else free
+        sim, _ = fit_similarity_trimmed(xyz[fit], np.asarray(rig.target_xyz, float)[fit])
         xyz[free] = sim.apply(xyz[free])
         rig_R, rig_t = sim.apply_to_cam_from_world(rig_R.reshape(-1, 3, 3), rig_t.reshape(-1, 3))
         for k, (R, t) in own.items():
@@ -624,7 +650,7 @@ def adjust_rig_jointly(
         if cid in models:  # re-learned in the joint graph, for every observation
             camera = replace(camera, correction=models[cid])
         cameras[cid] = camera
-        res_model = p.residuals_px(final)
+        res_model = res_model_of[cid]
         res = camera.pixel_residuals(raw_uv[cid], res_model) if len(res_model) else res_model
         keep = kept[cid]
         residuals[cid] = np.full((len(keep), 2), np.nan)
@@ -644,7 +670,8 @@ def adjust_rig_jointly(
         cam_from_rig=ext,
         rig_from_world={f: (rig_R[k], rig_t[k]) for f, k in f_index.items()},
         cam_from_world=cam_from_world,
-        target_xyz={rig.target_ids[j]: xyz[j] for j in np.unique(obs_target)},
+        target_xyz={rig.target_ids[j]: xyz[j] for j in np.unique(obs_target) if not lost[j]},
+        undetermined_targets=[rig.target_ids[j] for j in np.flatnonzero(lost)],
         cameras=cameras,
         residuals_px=residuals,
         weights=weights,
