@@ -615,8 +615,20 @@ def calibrate_rig(
 
 #: reasons not to trust a camera's own adjustment that the joint adjustment settles for a
 #: camera whose own images form groups sharing no target (:func:`largest_connected_part`):
-#: alone it saw only its largest group; the joint graph adjusts it with every image
-JOINT_SETTLES = (str(Distrust.NOT_CONVERGED), str(Distrust.SINGULAR))
+#: alone it saw only its largest group; the joint graph adjusts it with every image. A
+#: fold is settled only when the jointly adjusted mapping does not fold inside the field
+#: the camera's observations span in the joint graph (:func:`_joint_unfolds`)
+JOINT_SETTLES = (str(Distrust.NOT_CONVERGED), str(Distrust.SINGULAR), str(Distrust.FOLD))
+
+
+def _joint_unfolds(cid: str, jr) -> bool:
+    """Camera ``cid``'s jointly adjusted radial mapping keeps increasing over the whole
+    field its observations span in the joint graph (``jr.max_incidence_deg``)."""
+    cam = jr.cameras.get(cid)
+    field = jr.max_incidence_deg.get(cid)
+    if cam is None or field is None:
+        return False
+    return cam.radial is None or float(np.degrees(cam.max_alpha_rad())) >= field
 
 
 def _joint_determines(cid: str, statistics: dict, jr) -> bool:
@@ -814,11 +826,20 @@ def assemble_rig(
         st = calibs[cid].statistics
         codes = st.get("distrust_codes", [None] * len(st.get("distrust", [])))
         for code, reason in zip(codes, st.get("distrust", [])):
-            if code in JOINT_SETTLES and _joint_determines(cid, st, jr):
+            settles = code in JOINT_SETTLES and _joint_determines(cid, st, jr)
+            if settles and code == str(Distrust.FOLD):
+                settles = _joint_unfolds(cid, jr)
+            if settles:
+                how = (
+                    f"; its jointly adjusted mapping does not fold inside the "
+                    f"{jr.max_incidence_deg[cid]:.1f} deg the joint graph observes"
+                    if code == str(Distrust.FOLD)
+                    else ""
+                )
                 settled.append(
                     f"camera {cid!r}: its own adjustment on its largest group of images: "
                     f"{reason}; the joint adjustment, with its other images, converged "
-                    "and determines its intrinsics"
+                    f"and determines its intrinsics{how}"
                 )
             else:
                 distrust.append(f"camera {cid!r}: {reason}")

@@ -44,7 +44,7 @@ import gtsam
 import numpy as np
 
 from ..core.camera import WARP_TERM, SphereCamera
-from ..core.geometry import fit_similarity_trimmed
+from ..core.geometry import fit_similarity_trimmed, incidence_deg
 from ..core.robust import robust_weight
 from ..io.calibration import Calibration
 from ..io.dataset import RigDataset
@@ -183,6 +183,9 @@ class JointRigResult:
     undetermined_targets : list of str
         Targets without a sigma seen in fewer than two images once the outliers are set
         aside (not in ``target_xyz``).
+    max_incidence_deg : dict of str -> float
+        Widest incidence angle (deg) of each camera's observations in the joint graph
+        (the field its jointly adjusted mapping must not fold in).
     """
 
     cam_from_rig: dict[str, Pose]
@@ -202,6 +205,7 @@ class JointRigResult:
     redundancy: int = 0
     notes: list[str] = field(default_factory=list)
     undetermined_targets: list[str] = field(default_factory=list)
+    max_incidence_deg: dict[str, float] = field(default_factory=dict)
 
 
 def precision_from_covariance(cov: np.ndarray, t: np.ndarray) -> dict:
@@ -643,6 +647,7 @@ def adjust_rig_jointly(
         }
 
     cameras, residuals, weights = {}, {}, {}
+    max_incidence: dict[str, float] = {}
     cam_from_world: dict[str, Pose] = {}
     for c, cid in enumerate(ids):
         p = problems[cid]
@@ -666,12 +671,20 @@ def adjust_rig_jointly(
                 k = f_index[f]
                 R_c, t_c = ext[cid]
                 cam_from_world[iid] = (R_c @ rig_R[k], R_c @ rig_t[k] + t_c)
+        # the field this camera's observations span in the joint graph
+        if len(p.obs_target):
+            poses = [cam_from_world[iid] for iid in images_of[cid]]
+            R_i = np.array([R for R, _ in poses])[p.obs_image]
+            t_i = np.array([t for _, t in poses])[p.obs_image]
+            pc = np.einsum("nij,nj->ni", R_i, xyz[p.obs_target]) + t_i
+            max_incidence[cid] = float(np.max(incidence_deg(pc)))
     return JointRigResult(
         cam_from_rig=ext,
         rig_from_world={f: (rig_R[k], rig_t[k]) for f, k in f_index.items()},
         cam_from_world=cam_from_world,
         target_xyz={rig.target_ids[j]: xyz[j] for j in np.unique(obs_target) if not lost[j]},
         undetermined_targets=[rig.target_ids[j] for j in np.flatnonzero(lost)],
+        max_incidence_deg=max_incidence,
         cameras=cameras,
         residuals_px=residuals,
         weights=weights,
