@@ -128,6 +128,16 @@ def print_statistics(stats: dict) -> None:
         ("redundancy", f"{stats['redundancy']}"),
         ("a-posteriori variance factor", f"{stats['variance_factor']:.4f}"),
         ("largest incidence angle (deg)", f"{stats['max_incidence_deg']:.1f}"),
+    ]
+    if "n_targets" in stats:
+        rows.append(
+            (
+                "targets adjusted / undetermined / weak",
+                f"{stats['n_targets']} / {stats.get('n_targets_undetermined', 0)} / "
+                f"{stats.get('n_targets_weak', 0)}",
+            )
+        )
+    rows += [
         ("status", f"{stats['status']} after {stats['iterations']} iterations"),
     ]
     width = max(len(k) for k, _ in rows)
