@@ -358,3 +358,53 @@ def test_check_geometry_never_fails_on_a_valid_dataset(network):
             raise_if_degenerate(problems)
     else:
         assert raise_if_degenerate(problems) == problems
+
+
+def _split_at(sim, n_first):
+    """A free room whose images after the first ``n_first`` see renamed targets only."""
+    doc = copy.deepcopy(sim.dataset)
+    extra = {}
+    for im in doc["images"][n_first:]:
+        for o in im["observations"]:
+            o["target"] = "B_" + o["target"]
+            extra[o["target"]] = o["target"][2:]
+    xyz = {t["id"]: t for t in doc["targets"]}
+    doc["targets"] += [dict(xyz[old], id=new) for new, old in sorted(extra.items())]
+    return parse_dataset(doc, "split.json"), [im["id"] for im in doc["images"][n_first:]]
+
+
+def test_connected_images_keeps_the_largest_free_group_and_names_the_rest():
+    from dataclasses import replace
+
+    from gtsam_sphere.estimation.calibrate import DISCONNECTED_REASON, connected_images
+
+    sim, _ = _room(sigma_mode="free")
+    ds, rest = _split_at(sim, 8)
+    with pytest.raises(DegenerateGeometryError) as err:
+        raise_if_degenerate(check_geometry(ds))
+    part = connected_images(ds, err.value)
+    assert part.image_ids == [i for i in ds.image_ids if i not in rest]
+    assert part.skipped_images == [(i, DISCONNECTED_REASON) for i in rest]
+    # another fatal problem beside it: no way out
+    other = replace(err.value.problems[0], code=ProblemCode.FEW_POINTS)
+    assert connected_images(ds, DegenerateGeometryError([*err.value.problems, other])) is None
+
+
+@pytest.mark.slow  # one small room, ~4 s
+def test_calibrate_leaves_out_a_group_of_images_a_free_network_cannot_hold():
+    """A free room whose last 4 images see only targets no other image sees: refused
+    whole before; now the 8 connected images are calibrated (trusted) and the 4 others
+    are listed in skipped_images with the reason, and counted in the input."""
+    from gtsam_sphere.estimation.calibrate import DISCONNECTED_REASON, calibrate
+
+    sim, _ = _room(sigma_mode="free")
+    ds, rest = _split_at(sim, 8)
+    calib = calibrate(ds)
+    assert calib.statistics["trusted"], calib.statistics["distrust"]
+    assert sorted(calib.image_ids) == sorted(i for i in ds.image_ids if i not in rest)
+    skipped = calib.to_dict()["skipped_images"]
+    assert [(s["id"], s["reason"]) for s in skipped] == [(i, DISCONNECTED_REASON) for i in rest]
+    assert calib.statistics["n_images_input"] == 12
+    assert calib.statistics["n_images_skipped"] == 4
+    with pytest.raises(DegenerateGeometryError, match="share no target"):
+        calibrate(ds, keep_connected=False)

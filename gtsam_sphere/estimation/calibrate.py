@@ -29,12 +29,18 @@ from ..core.camera import (
     radial_terms,
     radial_warp,
 )
-from ..core.errors import GtsamSphereError
+from ..core.errors import DegenerateGeometryError, GtsamSphereError
 from ..core.geometry import fit_similarity_trimmed, incidence_deg
 from ..core.robust import MAD_RELATIVE_SE, MAD_TO_SIGMA, Loss, robust_sigma_px, robust_weight
 from ..io.calibration import Calibration
 from ..io.dataset import Dataset
-from .diagnose import check_geometry, raise_if_degenerate, undetermined_targets
+from .diagnose import (
+    ProblemCode,
+    check_geometry,
+    image_groups,
+    raise_if_degenerate,
+    undetermined_targets,
+)
 from .graph import (
     INTRINSICS_KEY,
     BundleProblem,
@@ -1282,11 +1288,61 @@ def _from_another_initial_lens(
     return again
 
 
+#: the reason recorded for each image :func:`connected_images` leaves out
+DISCONNECTED_REASON = (
+    "shares no target with the images calibrated (its group of images is not held in the "
+    "world frame by 3 non-collinear targets with a sigma)"
+)
+
+
+def connected_images(dataset: Dataset, error: DegenerateGeometryError) -> Dataset | None:
+    """The images that can be adjusted together when the only fatal problem is that the
+    images form groups sharing no target (``disconnected-network``).
+
+    The groups held in the world frame (each by 3 non-collinear targets with a sigma)
+    are kept; in a free network (no group held) the largest group (ties: the lowest
+    first image). The others go to ``skipped_images`` with :data:`DISCONNECTED_REASON`.
+    A free room of 8 images where one image, or a pair, saw only targets no other image
+    saw (zoo stress 215 s20, 216 s20) was refused whole before; the diagnosis itself
+    advises leaving the smaller groups out. A rig does not take this path: its joint
+    adjustment holds a camera's other groups through their frames
+    (:func:`.rig.largest_connected_part`).
+
+    Parameters
+    ----------
+    dataset : Dataset
+    error : DegenerateGeometryError
+        The refusal of its calibration.
+
+    Returns
+    -------
+    Dataset or None
+        The images kept, or None when ``error`` has another fatal problem (or nothing
+        would be left out).
+    """
+    problems = list(error.problems)
+    if not problems or any(p.code is not ProblemCode.DISCONNECTED for p in problems):
+        return None
+    unheld = {i for p in problems for i in p.items}
+    keep = np.array([i not in unheld for i in dataset.image_ids], bool)
+    if not keep.any():
+        groups = image_groups(dataset)
+        if len(groups) < 2:
+            return None
+        keep[groups[0]] = True
+    if keep.all():
+        return None
+    reasons = dict.fromkeys(np.flatnonzero(~keep).tolist(), DISCONNECTED_REASON)
+    return dataset.subset_images(keep, reasons)
+
+
 def calibrate(
     dataset: Dataset,
     options: CalibrationOptions | None = None,
     progress: Callable[[str], None] | None = None,
     init: Initialisation | None = None,
+    *,
+    keep_connected: bool = True,
 ) -> Calibration:
     """Calibrate the camera of ``dataset``: initialise, adjust, (learn corrections).
 
@@ -1299,6 +1355,12 @@ def calibrate(
         Receives progress lines (the CLI prints them on standard error).
     init : Initialisation, optional
         Reuse an initialisation (:func:`initialise`) of the same dataset.
+    keep_connected : bool
+        When the images form groups that share no target and that is the only reason
+        to refuse the dataset, calibrate the images that can be adjusted together
+        (:func:`connected_images`) and list the others in ``skipped_images`` with a
+        logged warning (default); False raises (a rig's cameras: the joint adjustment
+        holds their other groups).
 
     Returns
     -------
@@ -1315,6 +1377,30 @@ def calibrate(
         again from the initialisation's best other lens and keeps that if it can be
         trusted (``statistics.initial_lens_fallback``).
     """
+    if keep_connected:
+        try:
+            return calibrate(dataset, options, progress, init, keep_connected=False)
+        except DegenerateGeometryError as error:
+            part = connected_images(dataset, error)
+            if part is None:
+                raise
+            n_out = len(dataset.image_ids) - len(part.image_ids)
+            logger.warning(
+                "the images form groups that share no target (%s): calibrating the %d "
+                "images that can be adjusted together; %d left out (listed in "
+                "skipped_images)",
+                " ".join(str(error).split())[:300],
+                len(part.image_ids),
+                n_out,
+            )
+            if progress:
+                progress(
+                    f"the images form groups that share no target: {n_out} left out, "
+                    f"{len(part.image_ids)} calibrated"
+                )
+            calib = calibrate(part, options, progress, None, keep_connected=False)
+            calib.statistics["n_images_input"] = len(dataset.image_ids)
+            return calib
     options = options or CalibrationOptions()
     say = progress or (lambda _line: None)
     fallback_options = sphere_fallback_options(options)

@@ -585,7 +585,7 @@ def calibrate_rig(
 
         try:
             try:
-                calibs[cid] = calibrate(ds, per_camera[cid], prefixed)
+                calibs[cid] = calibrate(ds, per_camera[cid], prefixed, keep_connected=False)
             except DegenerateGeometryError as exc:
                 part = largest_connected_part(ds, exc, framed, joint)
                 if part is None:
@@ -597,7 +597,7 @@ def calibrate_rig(
                     f"the other {len(set(rest['image']))} images join in the rig's joint "
                     "adjustment through their frames"
                 )
-                calibs[cid] = calibrate(main, per_camera[cid], prefixed)
+                calibs[cid] = calibrate(main, per_camera[cid], prefixed, keep_connected=False)
                 calibs[cid].extra["joint_only_observations"] = rest
                 calibs[cid].statistics["n_images_joint_only"] = len(set(rest["image"]))
         except (DatasetError, ValueError) as exc:  # bad or degenerate input of this camera
