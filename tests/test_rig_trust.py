@@ -282,9 +282,10 @@ def _free(doc: dict) -> dict:
 
 def test_a_camera_split_in_groups_keeps_its_largest_for_the_rig():
     """The mixed rig's pinhole in a free network (6 frames, seed 1): its own images form
-    groups that share no target, so calibrating it alone is refused; the largest group
-    is what it calibrates on, the others' observations wait for the joint graph, and
-    nothing is skipped or dropped on the way."""
+    groups that share no target, so calibrating it alone as the rig does
+    (``keep_connected=False``) is refused; the largest group is what it calibrates on,
+    the others' observations wait for the joint graph, and nothing is skipped or dropped
+    on the way."""
     from gtsam_sphere.core.errors import DegenerateGeometryError
     from gtsam_sphere.estimation.diagnose import image_groups
     from gtsam_sphere.estimation.rig import largest_connected_part
@@ -293,7 +294,7 @@ def test_a_camera_split_in_groups_keeps_its_largest_for_the_rig():
     rig = parse_rig_dataset(_free(sim.dataset))
     ds = split_rig(rig)["pinhole"]
     with pytest.raises(DegenerateGeometryError) as err:
-        calibrate(ds, CalibrationOptions())
+        calibrate(ds, CalibrationOptions(), keep_connected=False)
     groups = image_groups(ds)
     assert len(groups) >= 2
     framed = {i for i, f in zip(rig.image_ids, rig.image_frame) if f}
