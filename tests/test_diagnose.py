@@ -199,18 +199,9 @@ def test_images_with_too_few_points_are_reported_from_the_loader(room):
 
 def _split_network(sim, sigma_mode):
     """The room's images in two halves that share no target (the second half's targets renamed)."""
-    doc = copy.deepcopy(sim.dataset)
-    half = len(doc["images"]) // 2
-    extra = {}
-    for im in doc["images"][half:]:
-        for o in im["observations"]:
-            o["target"] = "B_" + o["target"]
-            extra[o["target"]] = o["target"][2:]
-    xyz = {t["id"]: t for t in doc["targets"]}
-    doc["targets"] += [dict(xyz[old], id=new) for new, old in sorted(extra.items())]
-    ds = parse_dataset(doc, "split.json")
+    ds, first, second = _split_at(sim, len(sim.dataset["images"]) // 2)
     assert sigma_mode == "free" or np.isfinite(ds.target_sigma).all()
-    return ds, [im["id"] for im in doc["images"][:half]], [im["id"] for im in doc["images"][half:]]
+    return ds, first, second
 
 
 def test_disconnected_free_network_is_fatal_and_names_the_groups():
@@ -361,7 +352,8 @@ def test_check_geometry_never_fails_on_a_valid_dataset(network):
 
 
 def _split_at(sim, n_first):
-    """A free room whose images after the first ``n_first`` see renamed targets only."""
+    """The room with the images after the first ``n_first`` seeing renamed targets only
+    (two groups that share no target): (dataset, first ids, other ids)."""
     doc = copy.deepcopy(sim.dataset)
     extra = {}
     for im in doc["images"][n_first:]:
@@ -370,7 +362,8 @@ def _split_at(sim, n_first):
             extra[o["target"]] = o["target"][2:]
     xyz = {t["id"]: t for t in doc["targets"]}
     doc["targets"] += [dict(xyz[old], id=new) for new, old in sorted(extra.items())]
-    return parse_dataset(doc, "split.json"), [im["id"] for im in doc["images"][n_first:]]
+    ids = [im["id"] for im in doc["images"]]
+    return parse_dataset(doc, "split.json"), ids[:n_first], ids[n_first:]
 
 
 def test_connected_images_keeps_the_largest_free_group_and_names_the_rest():
@@ -379,7 +372,7 @@ def test_connected_images_keeps_the_largest_free_group_and_names_the_rest():
     from gtsam_sphere.estimation.calibrate import DISCONNECTED_REASON, connected_images
 
     sim, _ = _room(sigma_mode="free")
-    ds, rest = _split_at(sim, 8)
+    ds, _, rest = _split_at(sim, 8)
     with pytest.raises(DegenerateGeometryError) as err:
         raise_if_degenerate(check_geometry(ds))
     part = connected_images(ds, err.value)
@@ -398,7 +391,7 @@ def test_calibrate_leaves_out_a_group_of_images_a_free_network_cannot_hold():
     from gtsam_sphere.estimation.calibrate import DISCONNECTED_REASON, calibrate
 
     sim, _ = _room(sigma_mode="free")
-    ds, rest = _split_at(sim, 8)
+    ds, _, rest = _split_at(sim, 8)
     calib = calibrate(ds)
     assert calib.statistics["trusted"], calib.statistics["distrust"]
     assert sorted(calib.image_ids) == sorted(i for i in ds.image_ids if i not in rest)
