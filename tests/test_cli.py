@@ -143,11 +143,19 @@ def test_ctrl_c_leaves_the_previous_file_and_says_so(small_room, tmp_path, capsy
     assert [p.name for p in tmp_path.iterdir()] == ["c.json"]  # no temporary left behind
 
 
-def test_closed_stdout_ends_quietly(tmp_path):
-    """``gtsam-sphere ... | head``: exit 141, no "error: Broken pipe", no traceback."""
+@pytest.mark.parametrize("unbuffered", [False, True])
+def test_closed_stdout_ends_quietly(tmp_path, unbuffered):
+    """``gtsam-sphere ... | head``: exit 141, no "error: Broken pipe", no traceback.
+
+    Block-buffered (a pipe, no ``PYTHONUNBUFFERED``: what a fresh machine has) the
+    closed pipe shows only when stdout is flushed; at exit Python would return 120."""
+    import os
     import subprocess
     import sys
 
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONUNBUFFERED"}
+    if unbuffered:
+        env["PYTHONUNBUFFERED"] = "1"
     proc = subprocess.Popen(
         [
             sys.executable,
@@ -161,6 +169,7 @@ def test_closed_stdout_ends_quietly(tmp_path):
         ],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
+        env=env,
     )
     proc.stdout.close()  # the reader goes away before the first line
     err = proc.stderr.read().decode()

@@ -197,7 +197,11 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         with log_to_stderr():
-            return int(args.func(args) or EXIT_OK)
+            status = int(args.func(args) or EXIT_OK)
+            # a block-buffered stdout (a pipe, without PYTHONUNBUFFERED) is written out
+            # here, where a closed pipe is caught, not at exit (where Python exits 120)
+            sys.stdout.flush()
+            return status
     except BaseException as exc:  # only the classes of EXIT_CODES are handled
         code = exit_code(exc)
         if code is None:
