@@ -894,7 +894,7 @@ def assemble_rig(
             "stages": jr.stages,
             "cost": float(jr.result.history[-1]["cost"]),
             "datum": jr.datum,
-            "loss": "huber",
+            "loss": jr.loss,
             "variance_factor": jr.variance_factor,
             "redundancy": jr.redundancy,
         }

@@ -24,7 +24,11 @@ Robust weighting as in the single-camera stages: Huber per observation, the scal
 ``sigma_px`` of each camera re-estimated from its residuals (``median / sqrt(2 ln 2)``
 of the residuals standardised by their redundancy numbers, a target's information
 summed over every camera that sees it: :func:`rig_redundancy`) until it changes by less
-than 5%. The precision of ``cam_from_rig`` is its marginal
+than 5%; with gross outliers left (beyond 10 sigma, at least
+:data:`~gtsam_sphere.estimation.calibrate.CAUCHY_MIN_FRACTION` of the observations) a
+last stage with Cauchy's loss, as the single camera's; then the targets left on one
+ray by outliers are not determined (out of the targets, listed). The precision of
+``cam_from_rig`` is its marginal
 covariance (``gtsam.Marginals``) in the final, robustly weighted graph, times the
 a-posteriori variance factor when that exceeds 1 (the robust scale, from the median,
 underestimates the spread of heavy-tailed residuals). On an in-model simulated rig
@@ -48,6 +52,7 @@ from ..core.geometry import fit_similarity_trimmed, incidence_deg
 from ..core.robust import robust_weight
 from ..io.calibration import Calibration
 from ..io.dataset import RigDataset
+from .calibrate import CAUCHY_MIN_FRACTION
 from .correct import consistent_with_neighbours, train_correction
 from .diagnose import undetermined_targets
 from .graph import (
@@ -186,6 +191,9 @@ class JointRigResult:
     max_incidence_deg : dict of str -> float
         Widest incidence angle (deg) of each camera's observations in the joint graph
         (the field its jointly adjusted mapping must not fold in).
+    loss : str
+        The last stage's loss: ``"huber"``, or ``"cauchy"`` when gross outliers were
+        left (:data:`~gtsam_sphere.estimation.calibrate.CAUCHY_MIN_FRACTION`).
     """
 
     cam_from_rig: dict[str, Pose]
@@ -206,6 +214,17 @@ class JointRigResult:
     notes: list[str] = field(default_factory=list)
     undetermined_targets: list[str] = field(default_factory=list)
     max_incidence_deg: dict[str, float] = field(default_factory=dict)
+    loss: str = "huber"
+
+
+def _weighted_ss(problems: dict, values: gtsam.Values, loss: Loss, threshold: float) -> float:
+    """Sum over every camera of the robustly weighted squared standardised residuals."""
+    total = 0.0
+    for p in problems.values():
+        r = np.linalg.norm(p.residuals_px(values), axis=1) / p.noise.sigma_px
+        w, _ = robust_weight(r, loss, threshold)
+        total += float(np.sum(w * r * r))
+    return total
 
 
 def precision_from_covariance(cov: np.ndarray, t: np.ndarray) -> dict:
@@ -553,17 +572,37 @@ def adjust_rig_jointly(
         )
         if all(abs(after[c] - before[c]) <= 0.02 * before[c] for c in learners):
             break
+    # gross outliers left: a last stage with Cauchy's redescending influence, from the
+    # Huber solution (the single camera's rule, calibrate.adjust). Huber bounds a
+    # blunder's pull but keeps it: with 3 % blunders of 30-300 px, a weighted ring of
+    # four cameras, 8 frames, kept 14-28 mm check-point RMSE against 3-4 mm free
+    loss = Loss.HUBER
+    n_obs_all = sum(len(p.uv_px) for p in problems.values())
+    n_gross = sum(
+        int(np.sum(np.linalg.norm(p.residuals_px(result.values), axis=1) > 10 * p.noise.sigma_px))
+        for p in problems.values()
+    )
+    huber_ss = None
+    if n_gross and n_gross >= CAUCHY_MIN_FRACTION * n_obs_all:
+        say(f"[rig] {n_gross} observations beyond 10 sigma: final stage with Cauchy")
+        huber_ss = _weighted_ss(problems, result.values, Loss.HUBER, loss_threshold)
+        loss = Loss.CAUCHY
+        for p in problems.values():
+            p.noise = NoiseOptions(p.noise.sigma_px, loss, loss_threshold)
+        stage += 1
+        last = optimize(build(), result.values, optimizer, ordering, say, "[rig] ")
+        offset = history[-1]["iteration"] + 1 if history else 0
+        history.extend(
+            dict(h, iteration=h["iteration"] + offset, stage=stage) for h in last.history
+        )
+        result = last
     result.history = history
     final = result.values
 
     # precision: the final, robustly weighted graph at the solution, scaled by the
     # a-posteriori variance factor when it exceeds 1 (errors the model does not hold)
     graph = build()
-    weighted_ss = 0.0
-    for p in problems.values():
-        r = np.linalg.norm(p.residuals_px(final), axis=1) / p.noise.sigma_px
-        w, _ = robust_weight(r, Loss.HUBER, loss_threshold)
-        weighted_ss += float(np.sum(w * r * r))
+    weighted_ss = _weighted_ss(problems, final, loss, loss_threshold)
     sig_free = sigma[free]
     n_priors = int(np.sum(np.isfinite(sig_free) & (sig_free > 0)))
     n_theta = sum(
@@ -578,6 +617,14 @@ def adjust_rig_jointly(
     )
     variance_factor = weighted_ss / max(redundancy, 1)
     inflate = max(1.0, variance_factor)
+    if huber_ss is not None:
+        # the Cauchy stage takes the targets off the blunders' pull, but not always the
+        # extrinsics (a weighted mixed rig of 6 frames, seed 7, 3 % blunders: 8.5 mm
+        # off with Huber or Cauchy, 3.1 mm with the blunders removed; why is not known:
+        # the per-camera stage the joint starts from, and holds the kNN field of, saw
+        # them too); its own variance factor (0.54 there) would report 2.6 mm. The
+        # precision keeps the Huber solution's inflation: pessimistic, not silent
+        inflate = max(inflate, huber_ss / max(redundancy, 1))
     cov_ext: dict[str, np.ndarray | None] = dict.fromkeys(ids[1:])
     int_sigma: dict[str, dict | None] = dict.fromkeys(ids)
     wanted = [intrinsics_key(c) for c in range(len(ids))]
@@ -662,7 +709,7 @@ def adjust_rig_jointly(
         residuals[cid][keep] = np.where(np.isfinite(res), res, res_model)
         r = np.linalg.norm(res_model, axis=1) / p.noise.sigma_px
         weights[cid] = np.zeros(len(keep))
-        weights[cid][keep] = robust_weight(r, Loss.HUBER, loss_threshold)[0]
+        weights[cid][keep] = robust_weight(r, loss, loss_threshold)[0]
         for iid in images_of[cid]:
             f = frame_of.get(iid)
             if f is None:
@@ -685,6 +732,7 @@ def adjust_rig_jointly(
         target_xyz={rig.target_ids[j]: xyz[j] for j in np.unique(obs_target) if not lost[j]},
         undetermined_targets=[rig.target_ids[j] for j in np.flatnonzero(lost)],
         max_incidence_deg=max_incidence,
+        loss=str(loss),
         cameras=cameras,
         residuals_px=residuals,
         weights=weights,
