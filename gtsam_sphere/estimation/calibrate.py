@@ -2507,13 +2507,10 @@ def _result(dataset, problem, adj, correction, history, options, n_input_images)
     # residual beyond 5 sigma that its image neighbours share (a lens or board error the
     # model does not hold, large at the border of a wide lens) is systematic, reported
     # as such and not listed as an outlier
-    gross = r_model > 5.0 * sigma
-    outlier = gross.copy()
-    if gross.any():
-        from .correct import consistent_with_neighbours
+    from .correct import blunders
 
-        outlier &= ~consistent_with_neighbours(dataset.uv_px, res_model)
-    systematic = gross & ~outlier
+    outlier = blunders(dataset.uv_px, res_model, sigma)
+    systematic = (r_model > 5.0 * sigma) & ~outlier
     # each target's precision where its rays meet (poses and lens held), outliers out
     weight = np.where(outlier, 0.0, adj.weights) / sigma**2
     meet_sigma = intersection_sigma(

@@ -45,6 +45,28 @@ def _rms(residuals_px: np.ndarray, mask: np.ndarray) -> float:
     return float(np.sqrt(np.mean(r2))) if len(r2) else float("nan")
 
 
+def blunders(uv_px: np.ndarray, residuals_px: np.ndarray, sigma_px: float) -> np.ndarray:
+    """Observations that are blunders, (N,) bool: beyond 5 sigma and unlike their image
+    neighbours (:func:`consistent_with_neighbours`).
+
+    A residual beyond 5 sigma that its neighbours share is a systematic error the model
+    does not hold (large at the border of a wide lens), not a blunder: a blunder is
+    gross relative to its neighbours, not only to the global sigma.
+
+    Parameters
+    ----------
+    uv_px, residuals_px : ndarray, shape (N, 2)
+        Raw pixels and the adjustment's residuals ``measured - predicted`` (px).
+    sigma_px : float
+        The adjustment's robust scale (px).
+    """
+    residuals_px = np.asarray(residuals_px, float).reshape(-1, 2)
+    out = np.linalg.norm(residuals_px, axis=1) > 5.0 * sigma_px
+    if out.any():
+        out &= ~consistent_with_neighbours(uv_px, residuals_px)
+    return out
+
+
 def consistent_with_neighbours(
     uv_px: np.ndarray,
     target_px: np.ndarray,

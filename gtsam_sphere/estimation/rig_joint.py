@@ -53,7 +53,7 @@ from ..core.robust import robust_weight
 from ..io.calibration import Calibration
 from ..io.dataset import RigDataset
 from .calibrate import CAUCHY_MIN_FRACTION
-from .correct import consistent_with_neighbours, train_correction
+from .correct import blunders, train_correction
 from .diagnose import undetermined_targets
 from .graph import (
     BundleProblem,
@@ -647,10 +647,7 @@ def adjust_rig_jointly(
     res_model_of = {cid: p.residuals_px(final) for cid, p in problems.items()}
     good_image, good_target, offset = [], [], 0
     for cid, p in problems.items():
-        r = np.linalg.norm(res_model_of[cid], axis=1)
-        outlier = r > 5.0 * p.noise.sigma_px
-        if outlier.any():
-            outlier &= ~consistent_with_neighbours(raw_uv[cid], res_model_of[cid])
+        outlier = blunders(raw_uv[cid], res_model_of[cid], p.noise.sigma_px)
         # an image per camera and image (two cameras of one frame see from two places)
         good_image.append(offset + p.obs_image[~outlier])
         good_target.append(p.obs_target[~outlier])
