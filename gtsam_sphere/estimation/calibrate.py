@@ -1174,28 +1174,6 @@ def _calibrate_once(
         say("computing the precision of the intrinsics (marginal covariance)")
         cov_theta = intrinsics_covariance(problem, adj.values)
     calib = _result(dataset, problem, adj, correction, history, options, n_input_images)
-    lost = calib.extra["undetermined_targets"]
-    if lost:
-        names = ", ".join(entry["id"] for entry in lost[:5]) + (", ..." if len(lost) > 5 else "")
-        logger.warning(
-            "%d targets without a sigma are not determined once the outliers are set aside "
-            "(%s): seen in fewer than two images, or rays that do not fix them; left out of "
-            "the adjusted targets (listed in undetermined_targets)",
-            len(lost),
-            names,
-        )
-    n_weak = calib.statistics["n_targets_weak"]
-    if n_weak:
-        logger.warning(
-            "%d of %d adjusted targets are weakly determined: their rays meet at small "
-            "angles (intersection sigma, poses and lens held, above %.4g %s, %g %% of the "
-            "targets' extent; listed in target_precision)",
-            n_weak,
-            len(calib.target_ids),
-            calib.statistics["weak_target_limit"],
-            dataset.units,
-            100 * WEAK_TARGET_FRACTION,
-        )
     if station_sigma:
         keys = problem.image_keys()[0]
         cov = marginal_covariances(problem.build(), adj.values, keys)
@@ -1461,9 +1439,37 @@ def calibrate(
             calib = sphere_instead(reason, folded, calib.statistics["first_sigma_px"]) or calib
     if not radial and options.fixed_intrinsics is None and calib.statistics["trusted"]:
         _check_against_reference(dataset, options, say, init, calib)
+    _warn_about_targets(calib)
     for reason in calib.statistics["distrust"]:
         logger.warning("do not trust this result: %s", reason)
     return calib
+
+
+def _warn_about_targets(calib: Calibration) -> None:
+    """Log the targets the result leaves out (not determined) and the weak ones, once,
+    for the calibration returned (not for a run it replaced or a reference run)."""
+    lost = getattr(calib, "extra", {}).get("undetermined_targets", [])
+    if lost:
+        names = ", ".join(entry["id"] for entry in lost[:5]) + (", ..." if len(lost) > 5 else "")
+        logger.warning(
+            "%d targets without a sigma are not determined once the outliers are set aside "
+            "(%s): seen in fewer than two images, or rays that do not fix them; left out of "
+            "the adjusted targets (listed in undetermined_targets)",
+            len(lost),
+            names,
+        )
+    n_weak = calib.statistics.get("n_targets_weak", 0)
+    if n_weak:
+        logger.warning(
+            "%d of %d adjusted targets are weakly determined: their rays meet at small "
+            "angles (intersection sigma, poses and lens held, above %.4g %s, %g %% of the "
+            "targets' extent; listed in target_precision)",
+            n_weak,
+            len(calib.target_ids),
+            calib.statistics["weak_target_limit"],
+            calib.units,
+            100 * WEAK_TARGET_FRACTION,
+        )
 
 
 #: a model the user chose (``sphere``, ``brown``, each ``+knn``) is not trusted when its
