@@ -914,21 +914,23 @@ def targets_lost_to_outliers(dataset: Dataset, outlier: np.ndarray) -> np.ndarra
     return lost
 
 
-#: :func:`weak_targets`: a target whose intersection sigma exceeds this fraction of the
-#: targets' extent is weakly determined
+#: :func:`weak_targets`: a target whose sigma (worst direction) exceeds this fraction of
+#: the targets' extent is weakly determined
 WEAK_TARGET_FRACTION = 0.02
 
 
 def weak_targets(xyz: np.ndarray, meet_sigma: np.ndarray) -> tuple[float, np.ndarray]:
-    """Targets whose rays fix them poorly, relative to the size of the network.
+    """Targets the adjustment determines poorly, relative to the size of the network.
 
     Parameters
     ----------
     xyz : ndarray, shape (T, 3)
         Adjusted coordinates (dataset units).
     meet_sigma : ndarray, shape (T,)
-        :func:`~gtsam_sphere.estimation.graph.intersection_sigma` (dataset units; NaN
-        for exact targets).
+        Each target's sigma along its worst direction (dataset units; NaN or 0 for
+        exact targets): the full one (:meth:`BundleProblem.target_covariances`), or
+        where that is not computed the intersection sigma
+        (:func:`~gtsam_sphere.estimation.graph.intersection_sigma`, a lower bound).
 
     Returns
     -------
@@ -1461,9 +1463,10 @@ def _warn_about_targets(calib: Calibration) -> None:
     n_weak = calib.statistics.get("n_targets_weak", 0)
     if n_weak:
         logger.warning(
-            "%d of %d adjusted targets are weakly determined: their rays meet at small "
-            "angles (intersection sigma, poses and lens held, above %.4g %s, %g %% of the "
-            "targets' extent; listed in target_precision)",
+            "%d of %d adjusted targets are weakly determined: sigma along the worst "
+            "direction above %.4g %s, %g %% of the targets' extent (rays that meet at "
+            "small angles, or poses the network holds poorly; listed in "
+            "target_precision)",
             n_weak,
             len(calib.target_ids),
             calib.statistics["weak_target_limit"],
@@ -2531,16 +2534,31 @@ def _result(dataset, problem, adj, correction, history, options, n_input_images)
         lost_reason.setdefault(j, UNFIXED_REASON)
     lost = np.zeros(len(dataset.target_ids), bool)
     lost[list(lost_reason)] = True
+    scale = 1.0
+    datum_points = None
     if problem.datum is Datum.FREE:
         free = problem.free_targets
         fit = free[~lost[free]] if np.sum(~lost[free]) >= 3 else free
-        sim, _ = fit_similarity_trimmed(xyz[fit], dataset.target_xyz[fit])
+        sim, kept = fit_similarity_trimmed(xyz[fit], dataset.target_xyz[fit])
+        datum_points = fit[kept]
+        scale = sim.scale
+    # each target's full precision, poses and lens estimated with it (a free network's
+    # in the datum of its similarity onto the approximate coordinates)
+    cov = problem.target_covariances(values, weight, xyz, datum_points)
+    full_sigma = None
+    if cov is not None:
+        full_sigma = scale * np.sqrt(np.maximum(np.linalg.eigvalsh(cov)[:, -1], 0.0))
+        full_sigma[dataset.target_sigma == 0] = 0.0
+        full_sigma[lost] = np.inf
+    if problem.datum is Datum.FREE:
         xyz[free] = sim.apply(xyz[free])
         R, t = sim.apply_to_cam_from_world(R, t)
         meet_sigma *= sim.scale
     observed = np.unique(dataset.obs_target)
     used_targets = observed[~lost[observed]]
-    weak_limit, weak = weak_targets(xyz[used_targets], meet_sigma[used_targets])
+    weak_limit, weak = weak_targets(
+        xyz[used_targets], (meet_sigma if full_sigma is None else full_sigma)[used_targets]
+    )
     pc = np.einsum("nij,nj->ni", R[dataset.obs_image], xyz[dataset.obs_target])
     pc += t[dataset.obs_image]
     inc = incidence_deg(pc)
@@ -2622,6 +2640,7 @@ def _result(dataset, problem, adj, correction, history, options, n_input_images)
             "target": [tids[j] for j in used_targets],
             "intersection_sigma": meet_sigma[used_targets],
             "weak": weak,
+            **({} if full_sigma is None else {"sigma": full_sigma[used_targets]}),
         },
         "undetermined_targets": [
             {

@@ -333,6 +333,123 @@ def observation_redundancy(
     return np.clip(2.0 - h, 0.0, 2.0)
 
 
+#: :func:`target_covariances` works on dense arrays: computed up to this many pose and
+#: intrinsic unknowns, and this many (target x unknown) entries
+FULL_PRECISION_MAX_UNKNOWNS = 1000
+FULL_PRECISION_MAX_ENTRIES = 6_000_000
+
+
+def target_covariances(
+    J_target: np.ndarray,
+    J_pose: np.ndarray,
+    J_theta: np.ndarray,
+    obs_target: np.ndarray,
+    obs_pose: np.ndarray,
+    weight: np.ndarray,
+    target_sigma: np.ndarray,
+    datum_xyz: np.ndarray | None = None,
+    datum_points: np.ndarray | None = None,
+) -> np.ndarray | None:
+    """Marginal covariance of every target, poses and intrinsics included, (T, 3, 3).
+
+    :func:`intersection_sigma` holds the poses and the lens; here they are estimated
+    with the targets. With the targets eliminated first (their normal blocks ``N_j``,
+    :func:`target_information`), the reduced system of the poses and intrinsics is
+    ``S = C - sum_j W_j N_j^+ W_j^T`` (``W_j`` the target-camera blocks) and each
+    target's covariance ``N_j^+ + A_j S^+ A_j^T`` with ``A_j = N_j^+ W_j^T``. With
+    ``datum_points``, a free network: the covariance is S-transformed onto the datum
+    of a similarity fitted over those targets (equal weights), the datum of
+    :func:`~gtsam_sphere.core.geometry.fit_similarity_trimmed` onto the approximate
+    coordinates; ``S^+`` (on the Jacobi-scaled system) leaves out the network's
+    7-parameter defect, which the transform removes from every generalised inverse
+    alike.
+
+    Parameters
+    ----------
+    J_target : ndarray, shape (N, 2, 3)
+        Derivative of each pixel by its target (zero for exact targets), px per unit.
+    J_pose : ndarray, shape (N, 2, 6)
+        By its image's pose (``[omega, v]``, right perturbation).
+    J_theta : ndarray, shape (N, 2, M)
+        By the intrinsics (M may be 0).
+    obs_target, obs_pose : ndarray of int, shape (N,)
+        The target and the pose (0 to P-1) of each observation.
+    weight : ndarray, shape (N,)
+        1 / px^2 (robust weight / sigma^2; 0 leaves the observation out).
+    target_sigma : ndarray, shape (T,)
+        Prior sigma of the targets (0 exact, NaN none).
+    datum_xyz : ndarray, shape (T, 3), optional
+        The adjusted targets (source frame of the datum fit).
+    datum_points : ndarray of int, optional
+        The targets the free network's similarity is fitted over (at least 3).
+
+    Returns
+    -------
+    ndarray, shape (T, 3, 3) or None
+        Dataset units^2 (zero for targets not observed or exact). None above
+        :data:`FULL_PRECISION_MAX_UNKNOWNS` or :data:`FULL_PRECISION_MAX_ENTRIES`.
+    """
+    obs_target = np.asarray(obs_target, np.intp)
+    obs_pose = np.asarray(obs_pose, np.intp)
+    w = np.asarray(weight, float)
+    n, m, n_t = len(obs_target), J_theta.shape[2], len(target_sigma)
+    n_pose = int(obs_pose.max()) + 1 if n else 0
+    n_c = 6 * n_pose + m
+    if n == 0 or n_c > FULL_PRECISION_MAX_UNKNOWNS or 3 * n_t * n_c > FULL_PRECISION_MAX_ENTRIES:
+        return None
+    info = target_information(J_target, obs_target, w, target_sigma)
+    cov = np.zeros_like(info)
+    used = np.unique(obs_target)
+    cov[used] = np.linalg.pinv(info[used], hermitian=True)
+    # W_j^T (T, 3, n_c): pose columns per (target, pose), intrinsics columns per target
+    wJt = w[:, None, None] * J_target
+    Wt = np.zeros((n_t, 3, n_pose, 6))
+    np.add.at(Wt, (obs_target, slice(None), obs_pose), np.einsum("nki,nka->nia", wJt, J_pose))
+    Wt = np.concatenate([Wt.reshape(n_t, 3, 6 * n_pose), np.zeros((n_t, 3, m))], axis=2)
+    np.add.at(Wt[:, :, 6 * n_pose :], obs_target, np.einsum("nki,nka->nia", wJt, J_theta))
+    # C: pose blocks per image, pose-intrinsics per image, intrinsics
+    C = np.zeros((n_c, n_c))
+    pp = np.zeros((n_pose, 6, 6))
+    np.add.at(pp, obs_pose, np.einsum("n,nka,nkb->nab", w, J_pose, J_pose))
+    pt = np.zeros((n_pose, 6, m))
+    np.add.at(pt, obs_pose, np.einsum("n,nka,nkb->nab", w, J_pose, J_theta))
+    for i in range(n_pose):
+        C[6 * i : 6 * i + 6, 6 * i : 6 * i + 6] = pp[i]
+        C[6 * i : 6 * i + 6, 6 * n_pose :] = pt[i]
+        C[6 * n_pose :, 6 * i : 6 * i + 6] = pt[i].T
+    C[6 * n_pose :, 6 * n_pose :] = np.einsum("n,nka,nkb->ab", w, J_theta, J_theta)
+    A = np.einsum("tij,tjc->tic", cov, Wt)  # N_j^+ W_j^T
+    S = C - Wt.reshape(3 * n_t, n_c).T @ A.reshape(3 * n_t, n_c)
+    d = np.sqrt(np.maximum(np.diag(S), 1e-300))
+    ev, V = np.linalg.eigh(S / np.outer(d, d))
+    keep = ev > 1e-10 * max(float(ev.max()), 1e-300)
+    S_inv = (V[:, keep] / ev[keep]) @ V[:, keep].T / np.outer(d, d)
+    if datum_points is None:
+        AS = np.einsum("tic,cd->tid", A, S_inv)
+        return cov + np.einsum("tid,tjd->tij", AS, A)
+    # S-transform onto the fit over F: dx' = dx - G_j M sum_{i in F} G_i^T dx_i
+    F = np.asarray(datum_points, np.intp)
+    x = np.asarray(datum_xyz, float) - np.asarray(datum_xyz, float)[F].mean(axis=0)
+    G = np.zeros((n_t, 3, 7))
+    G[:, :, 0:3] = np.eye(3)
+    G[:, 0, 4], G[:, 0, 5] = x[:, 2], -x[:, 1]  # -[x]x: the small rotation's columns
+    G[:, 1, 3], G[:, 1, 5] = -x[:, 2], x[:, 0]
+    G[:, 2, 3], G[:, 2, 4] = x[:, 1], -x[:, 0]
+    G[:, :, 6] = x
+    M = np.linalg.pinv(np.einsum("fia,fib->ab", G[F], G[F]))
+    GM = np.einsum("tia,ab->tib", G, M)
+    inF = np.zeros(n_t, bool)
+    inF[F] = True
+    # (S A)_j = A_j - G_j M sum_F G_i^T A_i
+    SA = A - np.einsum("tia,ac->tic", GM, np.einsum("fia,fic->ac", G[F], A[F]))
+    # diagonal blocks of S D S^T (D = the N_j^+ blocks)
+    GtDG = np.einsum("fia,fij,fjb->ab", G[F], cov[F], G[F])
+    KD = np.where(inF[:, None, None], np.einsum("tia,tja,tjk->tik", GM, G, cov), 0.0)
+    SDS = cov - KD - KD.transpose(0, 2, 1) + np.einsum("tia,ab,tjb->tij", GM, GtDG, GM)
+    ASA = np.einsum("tic,cd,tjd->tij", SA, S_inv, SA)
+    return SDS + ASA
+
+
 def target_information(
     J: np.ndarray, obs_target: np.ndarray, weight: np.ndarray, target_sigma: np.ndarray
 ) -> np.ndarray:
@@ -850,6 +967,48 @@ class BundleProblem:
             self.obs_target,
             np.full(len(self.uv_px), float(sigma_px)),
             self.target_sigma,
+        )
+
+    def target_covariances(
+        self,
+        values: gtsam.Values,
+        weight: np.ndarray,
+        datum_xyz: np.ndarray | None = None,
+        datum_points: np.ndarray | None = None,
+    ) -> np.ndarray | None:
+        """Marginal covariance of every target at ``values``, (T, 3, 3) or None.
+
+        :func:`target_covariances` with this problem's Jacobians (the factor engine's,
+        analytic; the blocks must be built), ``weight`` (N,) 1 / px^2 and its target
+        priors; the intrinsics held when they are fixed. ``datum_xyz`` (T, 3) and
+        ``datum_points``: a free network's similarity datum (the adjusted targets, and
+        those the similarity is fitted over). None where the
+        system is too large (:data:`FULL_PRECISION_MAX_UNKNOWNS`), for a rig's
+        extrinsic poses, or without observations.
+        """
+        if not self.blocks or len(self.uv_px) == 0:
+            return None
+        engine, _ = self.blocks[0].engine()
+        if engine.model.k_ext is not None:
+            return None
+        _, J_e = engine.jacobians_px(values)  # (2, columns, n), engine order
+        J = np.zeros((len(self.uv_px), 2, J_e.shape[1]))
+        J[np.concatenate(self.block_obs)] = J_e.transpose(2, 0, 1)
+        J = np.nan_to_num(J)
+        J_theta = J[:, :, 9 : 9 + engine.model.n_theta]
+        if self.fixed_intrinsics is not None:
+            J_theta = J_theta[:, :, :0]
+        images = np.unique(self.obs_image)
+        return target_covariances(
+            self.target_jacobians(values),
+            J[:, :, 0:6],
+            J_theta,
+            self.obs_target,
+            np.searchsorted(images, self.obs_image),
+            weight,
+            self.target_sigma,
+            datum_xyz,
+            datum_points,
         )
 
     def n_unknowns(self) -> int:
