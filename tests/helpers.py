@@ -111,3 +111,24 @@ def bare_rig_calibration(cameras, cam_from_rig, model="radial", units="m", rms_p
         statistics={**stats, "cameras": {c: dict(stats) for c in ids}},
         units=units,
     )
+
+
+def initialise_simulation(sim):
+    """``initialize_poses`` of a simulated room's dataset, lens unknown, as
+    ``calibrate`` runs it; returns (parsed dataset, result, progress lines)."""
+    from gtsam_sphere.estimation.initialize import initialize_poses
+    from gtsam_sphere.io.dataset import parse_dataset
+
+    data = parse_dataset(sim.dataset)
+    messages: list[str] = []
+    res = initialize_poses(
+        data.uv_px,
+        data.obs_image,
+        data.obs_target,
+        data.target_xyz,
+        data.width,
+        data.height,
+        len(data.image_ids),
+        progress=messages.append,
+    )
+    return data, res, messages

@@ -6,6 +6,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from helpers import initialise_simulation
 
 from gtsam_sphere.estimation.initialize import (
     InitialisationError,
@@ -703,20 +704,7 @@ def test_folded_lens_is_searched_in_focal_scale_and_principal_point_together():
             scene="room",
         )
     )
-    from gtsam_sphere.io.dataset import parse_dataset
-
-    ds = parse_dataset(sim.dataset)
-    messages: list[str] = []
-    res = initialize_poses(
-        ds.uv_px,
-        ds.obs_image,
-        ds.obs_target,
-        ds.target_xyz,
-        ds.width,
-        ds.height,
-        len(ds.image_ids),
-        progress=messages.append,
-    )
+    _, res, messages = initialise_simulation(sim)
     assert res.lens.folded, res.lens.describe()
     assert abs(res.lens.f_px / 384.0 - 1) < 0.02, res.lens.describe()
     assert np.hypot(*(res.principal_point_px - [328.876, 200.14])) < 4.0, messages

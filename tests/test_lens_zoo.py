@@ -111,24 +111,12 @@ def _initialise_case(case):
     """Simulate a zoo case and initialise it; returns (simulation, result, progress
     lines, the worst initial rotation error in degrees over the images)."""
     import numpy as np
+    from helpers import initialise_simulation
 
-    from gtsam_sphere.estimation.initialize import initialize_poses
-    from gtsam_sphere.io.dataset import parse_dataset
     from gtsam_sphere.simulate import simulate_room
 
     sim = simulate_room(case.options())
-    data = parse_dataset(sim.dataset)
-    messages: list[str] = []
-    res = initialize_poses(
-        data.uv_px,
-        data.obs_image,
-        data.obs_target,
-        data.target_xyz,
-        data.width,
-        data.height,
-        len(data.image_ids),
-        progress=messages.append,
-    )
+    data, res, messages = initialise_simulation(sim)
     truth = {im["id"]: im["cam_from_world"] for im in sim.truth["images"]}
     worst = 0.0
     for k, image_id in enumerate(data.image_ids):
