@@ -271,3 +271,23 @@ def test_rig_joint_adjustment_ends_with_cauchy_when_blunders_remain():
     jr = adjust_rig_jointly(rig, calibs, ext0, frames0, xyz0)
     assert jr.loss == "cauchy"
     assert _target_rmse(jr, truth) < 1.1 * _target_rmse(clean, truth)
+
+
+def test_rays_that_meet_beyond_the_network_do_not_fix_a_target():
+    from gtsam_sphere.estimation.calibrate import targets_extent, unfixed_targets
+
+    rng = np.random.default_rng(8)
+    xyz = rng.uniform([0, 0, 0], [7, 6, 3], size=(50, 3))
+    xyz[0] = [53_000.0, 0.0, 0.0]  # flew off: the extent ignores it
+    extent = targets_extent(xyz)
+    assert 6.0 < extent < 10.0
+    sigma = np.full(50, 0.01)
+    sigma[0] = 4000.0  # rays meeting 53 km away
+    sigma[1] = np.inf  # one ray
+    sigma[2] = 0.5 * extent  # weak, but fixed
+    sigma[3] = np.nan  # exact
+    judge = np.ones(50, bool)
+    judge[4] = False  # a target with a sigma is not judged
+    sigma[4] = 1e6
+    out = unfixed_targets(sigma, judge, extent)
+    assert np.flatnonzero(out).tolist() == [0, 1]

@@ -870,7 +870,8 @@ def without_undetermined_targets(
 
 UNFIXED_REASON = (
     "target without a sigma whose rays, outliers set aside, do not fix its position "
-    "(parallel, or weighted down to nothing): its adjusted coordinates are not determined"
+    "(parallel, meeting at so small an angle that its sigma exceeds the targets' extent, "
+    "or weighted down to nothing): its adjusted coordinates are not determined"
 )
 LOST_TO_OUTLIERS_REASON = (
     "target without a sigma seen in fewer than two images once the outliers are set aside: "
@@ -919,6 +920,47 @@ def targets_lost_to_outliers(dataset: Dataset, outlier: np.ndarray) -> np.ndarra
 WEAK_TARGET_FRACTION = 0.02
 
 
+def targets_extent(xyz: np.ndarray) -> float:
+    """Size of a set of targets (T, 3): the diagonal of the box of their 5th to 95th
+    percentiles per axis (dataset units; a few targets that flew off do not count)."""
+    xyz = np.asarray(xyz, float).reshape(-1, 3)
+    if len(xyz) == 0:
+        return 0.0
+    return float(np.linalg.norm(np.percentile(xyz, 95, axis=0) - np.percentile(xyz, 5, axis=0)))
+
+
+def unfixed_targets(meet_sigma: np.ndarray, judge: np.ndarray, extent: float) -> np.ndarray:
+    """Targets whose rays do not fix them: intersection sigma infinite, or beyond the
+    extent of the network.
+
+    Two rays meeting at a tiny angle give a finite sigma at the point where they meet,
+    however far: a free stereo rig of 6 frames (``simulate_rig("stereo", 6, seed=9)``,
+    every sigma removed) put a target seen by the two cameras of one frame, 12 cm
+    apart, 53 km away in a 7 m room, and it was trusted. A target that could be
+    anywhere in the network is not determined.
+
+    Parameters
+    ----------
+    meet_sigma : ndarray, shape (T,)
+        :func:`~gtsam_sphere.estimation.graph.intersection_sigma` (dataset units; NaN or
+        0 for exact targets and targets not observed).
+    judge : ndarray of bool, shape (T,)
+        The targets to judge (those without a sigma).
+    extent : float
+        :func:`targets_extent` of the observed targets, in the units of ``meet_sigma``.
+
+    Returns
+    -------
+    ndarray of bool, shape (T,)
+    """
+    sig = np.asarray(meet_sigma, float)
+    judge = np.asarray(judge, bool)
+    out = judge & np.isposinf(sig)
+    if extent > 0:
+        out |= judge & np.isfinite(sig) & (sig > extent)
+    return out
+
+
 def weak_targets(xyz: np.ndarray, meet_sigma: np.ndarray) -> tuple[float, np.ndarray]:
     """Targets the adjustment determines poorly, relative to the size of the network.
 
@@ -943,8 +985,7 @@ def weak_targets(xyz: np.ndarray, meet_sigma: np.ndarray) -> tuple[float, np.nda
     xyz = np.asarray(xyz, float).reshape(-1, 3)
     if len(xyz) == 0:
         return 0.0, np.zeros(0, bool)
-    extent = float(np.linalg.norm(np.percentile(xyz, 95, axis=0) - np.percentile(xyz, 5, axis=0)))
-    limit = WEAK_TARGET_FRACTION * extent
+    limit = WEAK_TARGET_FRACTION * targets_extent(xyz)
     sig = np.asarray(meet_sigma, float)
     return limit, np.isfinite(sig) & (sig > limit) | np.isposinf(sig)
 
@@ -2530,7 +2571,13 @@ def _result(dataset, problem, adj, correction, history, options, n_input_images)
         np.flatnonzero(targets_lost_to_outliers(dataset, outlier)).tolist(),
         LOST_TO_OUTLIERS_REASON,
     )
-    for j in np.flatnonzero(np.isposinf(meet_sigma)).tolist():
+    observed = np.bincount(dataset.obs_target, minlength=len(dataset.target_ids)) > 0
+    no_sigma = np.zeros(len(dataset.target_ids), bool)
+    no_sigma[problem.free_targets] = True
+    no_sigma &= ~np.isfinite(problem.target_sigma)
+    settled = observed & ~np.isin(np.arange(len(no_sigma)), list(lost_reason))
+    extent = targets_extent(xyz[settled])
+    for j in np.flatnonzero(unfixed_targets(meet_sigma, settled & no_sigma, extent)).tolist():
         lost_reason.setdefault(j, UNFIXED_REASON)
     lost = np.zeros(len(dataset.target_ids), bool)
     lost[list(lost_reason)] = True

@@ -341,10 +341,10 @@ FULL_PRECISION_MAX_ENTRIES = 6_000_000
 
 def target_covariances(
     J_target: np.ndarray,
-    J_pose: np.ndarray,
-    J_theta: np.ndarray,
+    J_camera: np.ndarray,
+    camera_columns: np.ndarray,
+    n_camera_unknowns: int,
     obs_target: np.ndarray,
-    obs_pose: np.ndarray,
     weight: np.ndarray,
     target_sigma: np.ndarray,
     datum_xyz: np.ndarray | None = None,
@@ -354,11 +354,12 @@ def target_covariances(
 
     :func:`intersection_sigma` holds the poses and the lens; here they are estimated
     with the targets. With the targets eliminated first (their normal blocks ``N_j``,
-    :func:`target_information`), the reduced system of the poses and intrinsics is
-    ``S = C - sum_j W_j N_j^+ W_j^T`` (``W_j`` the target-camera blocks) and each
-    target's covariance ``N_j^+ + A_j S^+ A_j^T`` with ``A_j = N_j^+ W_j^T``. With
-    ``datum_points``, a free network: the covariance is S-transformed onto the datum
-    of a similarity fitted over those targets (equal weights), the datum of
+    :func:`target_information`), the reduced system of the camera-side unknowns (poses,
+    a rig's frames and extrinsics, intrinsics) is ``S = C - sum_j W_j N_j^+ W_j^T``
+    (``W_j`` the target-camera blocks) and each target's covariance
+    ``N_j^+ + A_j S^+ A_j^T`` with ``A_j = N_j^+ W_j^T``. With ``datum_points``, a free
+    network: the covariance is S-transformed onto the datum of a similarity fitted over
+    those targets (equal weights), the datum of
     :func:`~gtsam_sphere.core.geometry.fit_similarity_trimmed` onto the approximate
     coordinates; ``S^+`` (on the Jacobi-scaled system) leaves out the network's
     7-parameter defect, which the transform removes from every generalised inverse
@@ -368,12 +369,15 @@ def target_covariances(
     ----------
     J_target : ndarray, shape (N, 2, 3)
         Derivative of each pixel by its target (zero for exact targets), px per unit.
-    J_pose : ndarray, shape (N, 2, 6)
-        By its image's pose (``[omega, v]``, right perturbation).
-    J_theta : ndarray, shape (N, 2, M)
-        By the intrinsics (M may be 0).
-    obs_target, obs_pose : ndarray of int, shape (N,)
-        The target and the pose (0 to P-1) of each observation.
+    J_camera : ndarray, shape (N, 2, K)
+        By the observation's camera-side unknowns (pose ``[omega, v]``, right
+        perturbation; intrinsics; ...), in the order of ``camera_columns``.
+    camera_columns : ndarray of int, shape (N, K)
+        Column of each in the reduced system, ``0 .. n_camera_unknowns - 1``; -1 for
+        none (its Jacobian is ignored). :func:`pose_and_intrinsics_columns` lays out a
+        single camera's.
+    n_camera_unknowns : int
+    obs_target : ndarray of int, shape (N,)
     weight : ndarray, shape (N,)
         1 / px^2 (robust weight / sigma^2; 0 leaves the observation out).
     target_sigma : ndarray, shape (T,)
@@ -390,34 +394,24 @@ def target_covariances(
         :data:`FULL_PRECISION_MAX_UNKNOWNS` or :data:`FULL_PRECISION_MAX_ENTRIES`.
     """
     obs_target = np.asarray(obs_target, np.intp)
-    obs_pose = np.asarray(obs_pose, np.intp)
     w = np.asarray(weight, float)
-    n, m, n_t = len(obs_target), J_theta.shape[2], len(target_sigma)
-    n_pose = int(obs_pose.max()) + 1 if n else 0
-    n_c = 6 * n_pose + m
+    n, n_t, n_c = len(obs_target), len(target_sigma), int(n_camera_unknowns)
     if n == 0 or n_c > FULL_PRECISION_MAX_UNKNOWNS or 3 * n_t * n_c > FULL_PRECISION_MAX_ENTRIES:
         return None
+    cols = np.asarray(camera_columns, np.intp)
+    Jc = np.where((cols >= 0)[:, None, :], np.asarray(J_camera, float), 0.0)
+    cols = np.where(cols >= 0, cols, n_c)  # a spare column, dropped below
     info = target_information(J_target, obs_target, w, target_sigma)
     cov = np.zeros_like(info)
     used = np.unique(obs_target)
     cov[used] = np.linalg.pinv(info[used], hermitian=True)
-    # W_j^T (T, 3, n_c): pose columns per (target, pose), intrinsics columns per target
-    wJt = w[:, None, None] * J_target
-    Wt = np.zeros((n_t, 3, n_pose, 6))
-    np.add.at(Wt, (obs_target, slice(None), obs_pose), np.einsum("nki,nka->nia", wJt, J_pose))
-    Wt = np.concatenate([Wt.reshape(n_t, 3, 6 * n_pose), np.zeros((n_t, 3, m))], axis=2)
-    np.add.at(Wt[:, :, 6 * n_pose :], obs_target, np.einsum("nki,nka->nia", wJt, J_theta))
-    # C: pose blocks per image, pose-intrinsics per image, intrinsics
-    C = np.zeros((n_c, n_c))
-    pp = np.zeros((n_pose, 6, 6))
-    np.add.at(pp, obs_pose, np.einsum("n,nka,nkb->nab", w, J_pose, J_pose))
-    pt = np.zeros((n_pose, 6, m))
-    np.add.at(pt, obs_pose, np.einsum("n,nka,nkb->nab", w, J_pose, J_theta))
-    for i in range(n_pose):
-        C[6 * i : 6 * i + 6, 6 * i : 6 * i + 6] = pp[i]
-        C[6 * i : 6 * i + 6, 6 * n_pose :] = pt[i]
-        C[6 * n_pose :, 6 * i : 6 * i + 6] = pt[i].T
-    C[6 * n_pose :, 6 * n_pose :] = np.einsum("n,nka,nkb->ab", w, J_theta, J_theta)
+    # W_j^T (T, 3, n_c) and C (n_c, n_c), accumulated from each observation's blocks
+    Wt = np.zeros((n_t, n_c + 1, 3))
+    np.add.at(Wt, (obs_target[:, None], cols), np.einsum("n,nka,nki->nai", w, Jc, J_target))
+    Wt = Wt[:, :n_c].transpose(0, 2, 1)
+    C = np.zeros((n_c + 1, n_c + 1))
+    np.add.at(C, (cols[:, :, None], cols[:, None, :]), np.einsum("n,nka,nkb->nab", w, Jc, Jc))
+    C = C[:n_c, :n_c]
     A = np.einsum("tij,tjc->tic", cov, Wt)  # N_j^+ W_j^T
     S = C - Wt.reshape(3 * n_t, n_c).T @ A.reshape(3 * n_t, n_c)
     d = np.sqrt(np.maximum(np.diag(S), 1e-300))
@@ -448,6 +442,22 @@ def target_covariances(
     SDS = cov - KD - KD.transpose(0, 2, 1) + np.einsum("tia,ab,tjb->tij", GM, GtDG, GM)
     ASA = np.einsum("tic,cd,tjd->tij", SA, S_inv, SA)
     return SDS + ASA
+
+
+def pose_and_intrinsics_columns(obs_pose: np.ndarray, n_theta: int) -> tuple[np.ndarray, int]:
+    """:func:`target_covariances`' layout for one camera: 6 columns per pose, then the
+    intrinsics. ``obs_pose`` (N,) indexes the poses 0 .. P-1; returns the columns (N,
+    6 + n_theta) and the number of unknowns ``6 P + n_theta``."""
+    obs_pose = np.asarray(obs_pose, np.intp)
+    n_pose = int(obs_pose.max()) + 1 if len(obs_pose) else 0
+    cols = np.concatenate(
+        [
+            6 * obs_pose[:, None] + np.arange(6),
+            np.broadcast_to(6 * n_pose + np.arange(n_theta), (len(obs_pose), n_theta)),
+        ],
+        axis=1,
+    )
+    return cols, 6 * n_pose + int(n_theta)
 
 
 def target_information(
@@ -995,16 +1005,15 @@ class BundleProblem:
         J = np.zeros((len(self.uv_px), 2, J_e.shape[1]))
         J[np.concatenate(self.block_obs)] = J_e.transpose(2, 0, 1)
         J = np.nan_to_num(J)
-        J_theta = J[:, :, 9 : 9 + engine.model.n_theta]
-        if self.fixed_intrinsics is not None:
-            J_theta = J_theta[:, :, :0]
+        n_theta = 0 if self.fixed_intrinsics is not None else engine.model.n_theta
         images = np.unique(self.obs_image)
+        cols, n_c = pose_and_intrinsics_columns(np.searchsorted(images, self.obs_image), n_theta)
         return target_covariances(
             self.target_jacobians(values),
-            J[:, :, 0:6],
-            J_theta,
+            np.concatenate([J[:, :, 0:6], J[:, :, 9 : 9 + n_theta]], axis=2),
+            cols,
+            n_c,
             self.obs_target,
-            np.searchsorted(images, self.obs_image),
             weight,
             self.target_sigma,
             datum_xyz,

@@ -866,6 +866,8 @@ def assemble_rig(
         "n_images_skipped": int(sum(calibs[c].statistics["n_images_skipped"] for c in ids)),
         "n_targets": len(target_ids),
         "n_targets_undetermined": len(jr.undetermined_targets) if jr is not None else 0,
+        "n_targets_weak": int(np.sum(jr.target_precision.get("weak", []))) if jr is not None else 0,
+        "weak_target_limit": jr.weak_target_limit if jr is not None else None,
         "converged": all(calibs[c].statistics["converged"] for c in ids)
         and (jr is None or jr.result.converged),
         "trusted": not distrust,
@@ -919,12 +921,33 @@ def assemble_rig(
             "camera_results": camera_results,
             "skipped_images": [{"id": i, "reason": why} for i, why in rig.skipped_images],
             "undetermined_targets": [
-                {"id": tid, "reason": LOST_TO_OUTLIERS_REASON}
+                {"id": tid, "reason": jr.undetermined_reasons.get(tid, LOST_TO_OUTLIERS_REASON)}
                 for tid in (jr.undetermined_targets if jr is not None else [])
             ],
+            **(
+                {"target_precision": _file_target_precision(jr, target_ids)}
+                if jr is not None and jr.target_precision
+                else {}
+            ),
             "source": rig.source,
         },
     )
+
+
+def _file_target_precision(jr, target_ids: list[str]) -> dict:
+    """The joint graph's ``target_precision`` for the targets the rig file holds."""
+    tp = jr.target_precision
+    index = {tid: k for k, tid in enumerate(tp["target"])}
+    keep = [tid for tid in target_ids if tid in index]
+    rows = [index[tid] for tid in keep]
+    out = {
+        "target": keep,
+        "intersection_sigma": np.asarray(tp["intersection_sigma"], float)[rows],
+        "weak": np.asarray(tp["weak"], bool)[rows],
+    }
+    if "sigma" in tp:
+        out["sigma"] = np.asarray(tp["sigma"], float)[rows]
+    return out
 
 
 # -- command line ------------------------------------------------------------------

@@ -52,7 +52,14 @@ from ..core.geometry import fit_similarity_trimmed, incidence_deg
 from ..core.robust import robust_weight
 from ..io.calibration import Calibration
 from ..io.dataset import RigDataset
-from .calibrate import CAUCHY_MIN_FRACTION
+from .calibrate import (
+    CAUCHY_MIN_FRACTION,
+    LOST_TO_OUTLIERS_REASON,
+    UNFIXED_REASON,
+    targets_extent,
+    unfixed_targets,
+    weak_targets,
+)
 from .correct import blunders, train_correction
 from .diagnose import undetermined_targets
 from .graph import (
@@ -62,11 +69,13 @@ from .graph import (
     NoiseOptions,
     extrinsics_key,
     frame_key,
+    intersection_sigma,
     intrinsics_key,
     observation_redundancy,
     point_key,
     pose_key,
     robust_sigma_px,
+    target_covariances,
 )
 from .optimize import (
     OptimizationResult,
@@ -187,7 +196,17 @@ class JointRigResult:
         What the adjustment left out or could not compute (no covariance).
     undetermined_targets : list of str
         Targets without a sigma seen in fewer than two images once the outliers are set
-        aside (not in ``target_xyz``).
+        aside, or whose rays do not fix them (intersection sigma infinite or beyond the
+        targets' extent, :func:`~gtsam_sphere.estimation.calibrate.unfixed_targets`);
+        not in ``target_xyz``.
+    undetermined_reasons : dict of str -> str
+        Why, per undetermined target (``calibrate.LOST_TO_OUTLIERS_REASON`` or
+        ``calibrate.UNFIXED_REASON``).
+    target_precision : dict
+        ``target`` (ids), ``intersection_sigma`` (dataset units, over every camera
+        that sees the target, poses and lenses held: a lower bound) and ``weak`` (above
+        ``weak_target_limit``, 2 % of the targets' extent).
+    weak_target_limit : float
     max_incidence_deg : dict of str -> float
         Widest incidence angle (deg) of each camera's observations in the joint graph
         (the field its jointly adjusted mapping must not fold in).
@@ -215,6 +234,9 @@ class JointRigResult:
     undetermined_targets: list[str] = field(default_factory=list)
     max_incidence_deg: dict[str, float] = field(default_factory=dict)
     loss: str = "huber"
+    undetermined_reasons: dict[str, str] = field(default_factory=dict)
+    target_precision: dict = field(default_factory=dict)
+    weak_target_limit: float = 0.0
 
 
 def _weighted_ss(problems: dict, values: gtsam.Values, loss: Loss, threshold: float) -> float:
@@ -246,6 +268,91 @@ def precision_from_covariance(cov: np.ndarray, t: np.ndarray) -> dict:
         "baseline_sigma": float(np.sqrt(u @ cov[3:, 3:] @ u)),
         "covariance": cov,
     }
+
+
+def rig_target_covariances(
+    problems: dict[str, BundleProblem],
+    values: gtsam.Values,
+    weights: dict[str, np.ndarray],
+    held_intrinsics: set[str],
+    held_extrinsics: bool,
+    datum_xyz: np.ndarray | None = None,
+    datum_points: np.ndarray | None = None,
+) -> np.ndarray | None:
+    """Marginal covariance of every target of the joint graph, (T, 3, 3) or None.
+
+    :func:`~gtsam_sphere.estimation.graph.target_covariances` with the rig's
+    camera-side unknowns: each frame's (or unframed image's) pose, each camera's
+    ``rig_from_cam`` (but the first's) and intrinsics, from every camera's analytic
+    Jacobians. ``weights`` (N_c,) per camera, 1 / px^2; ``held_intrinsics`` the cameras
+    whose intrinsics are held, ``held_extrinsics`` when ``cam_from_rig`` is; the datum
+    arguments as there (a free network's S-transform).
+    """
+    ids = list(problems)
+    per_cam, pose_keys, ext_keys = [], set(), set()
+    for cid in ids:
+        p = problems[cid]
+        if not p.blocks or len(p.uv_px) == 0:
+            continue
+        engine, _ = p.blocks[0].engine()
+        _, J_e = engine.jacobians_px(values)
+        J = np.zeros((len(p.uv_px), 2, J_e.shape[1]))
+        J[np.concatenate(p.block_obs)] = J_e.transpose(2, 0, 1)
+        J = np.nan_to_num(J)
+        n_model = engine.model.n_theta
+        n_th = 0 if cid in held_intrinsics else n_model
+        pk = np.asarray(p.image_pose_keys, np.int64)[p.obs_image]
+        ek = np.full(len(pk), -1, np.int64)
+        if p.image_extrinsic_keys is not None and not held_extrinsics:
+            ek = np.asarray(p.image_extrinsic_keys, np.int64)[p.obs_image]
+        J_ext = J[:, :, 9 + n_model : 15 + n_model]
+        if engine.model.k_ext is None:
+            J_ext = np.zeros((len(pk), 2, 6))
+        per_cam.append((cid, p, J, n_th, pk, ek, J_ext))
+        pose_keys.update(pk.tolist())
+        ext_keys.update(ek[ek >= 0].tolist())
+    if not per_cam:
+        return None
+    column = {k: 6 * i for i, k in enumerate(sorted(pose_keys))}
+    offset = 6 * len(column)
+    for k in sorted(ext_keys):
+        column[k] = offset
+        offset += 6
+    theta_at = {}
+    for cid, _, _, n_th, _, _, _ in per_cam:
+        theta_at[cid] = offset
+        offset += n_th
+    width = max(12 + n_th for _, _, _, n_th, _, _, _ in per_cam)
+    J_t, J_c, cols, obs, w = [], [], [], [], []
+    for cid, p, J, n_th, pk, ek, J_ext in per_cam:
+        n = len(pk)
+        c = np.full((n, width), -1, np.intp)
+        jc = np.zeros((n, 2, width))
+        c[:, 0:6] = np.array([column[k] for k in pk.tolist()])[:, None] + np.arange(6)
+        jc[:, :, 0:6] = J[:, :, 0:6]
+        c[:, 6 : 6 + n_th] = theta_at[cid] + np.arange(n_th)
+        jc[:, :, 6 : 6 + n_th] = J[:, :, 9 : 9 + n_th]
+        has = ek >= 0
+        if has.any():
+            starts = np.array([column.get(k, -1) for k in ek.tolist()])
+            c[has, 6 + n_th : 12 + n_th] = starts[has, None] + np.arange(6)
+            jc[has, :, 6 + n_th : 12 + n_th] = J_ext[has]
+        J_t.append(p.target_jacobians(values))
+        J_c.append(jc)
+        cols.append(c)
+        obs.append(p.obs_target)
+        w.append(np.asarray(weights[cid], float))
+    return target_covariances(
+        np.concatenate(J_t),
+        np.concatenate(J_c),
+        np.concatenate(cols),
+        offset,
+        np.concatenate(obs),
+        np.concatenate(w),
+        per_cam[0][1].target_sigma,
+        datum_xyz,
+        datum_points,
+    )
 
 
 def rig_redundancy(problems: dict[str, BundleProblem], values: gtsam.Values) -> dict:
@@ -646,18 +753,73 @@ def adjust_rig_jointly(
     # single-camera rule, calibrate.targets_lost_to_outliers): not determined
     res_model_of = {cid: p.residuals_px(final) for cid, p in problems.items()}
     good_image, good_target, offset = [], [], 0
+    J_all, w_all, w_of = [], [], {}
     for cid, p in problems.items():
         outlier = blunders(raw_uv[cid], res_model_of[cid], p.noise.sigma_px)
         # an image per camera and image (two cameras of one frame see from two places)
         good_image.append(offset + p.obs_image[~outlier])
         good_target.append(p.obs_target[~outlier])
         offset += p.n_images
+        r = np.linalg.norm(res_model_of[cid], axis=1) / p.noise.sigma_px
+        w = robust_weight(r, loss, loss_threshold)[0] if len(r) else np.zeros(0)
+        w_of[cid] = np.where(outlier, 0.0, w) / p.noise.sigma_px**2
+        w_all.append(w_of[cid])
+        J_all.append(p.target_jacobians(final))
+    observed = np.bincount(obs_target, minlength=len(sigma)) > 0
     lost = undetermined_targets(np.concatenate(good_image), np.concatenate(good_target), sigma)
-    lost &= np.bincount(obs_target, minlength=len(sigma)) > 0
+    lost &= observed
+    reasons = dict.fromkeys(np.flatnonzero(lost).tolist(), LOST_TO_OUTLIERS_REASON)
+    # each target's intersection sigma over every camera that sees it (poses and lenses
+    # held; the single camera's rule, calibrate._result): rays that do not fix a target
+    # (a stereo pair's two rays of one frame meeting 53 km away) leave it undetermined
+    meet = intersection_sigma(np.concatenate(J_all), obs_target, np.concatenate(w_all), sigma)
+    meet[np.isfinite(sigma) & (sigma == 0)] = 0.0
+    xyz_solver = np.asarray(rig.target_xyz, float).copy()
+    for j in free:
+        xyz_solver[j] = final.atPoint3(point_key(int(j)))
+    extent = targets_extent(xyz_solver[observed & ~lost])
+    unfixed = unfixed_targets(meet, observed & ~lost & ~np.isfinite(sigma), extent)
+    for j in np.flatnonzero(unfixed).tolist():
+        reasons[j] = UNFIXED_REASON
+    lost |= unfixed
     if lost.any():
         notes.append(
-            f"{int(lost.sum())} targets without a sigma seen in fewer than two images once "
-            "the outliers are set aside are not determined: left out of the targets"
+            f"{int(lost.sum())} targets without a sigma are not determined once the outliers "
+            "are set aside (seen in fewer than two images, or rays that do not fix them): "
+            "left out of the targets"
+        )
+    used = np.flatnonzero(observed & ~lost)
+    # the full precision (poses, extrinsics and lenses estimated too), a free network's
+    # in the datum of its similarity onto the approximate coordinates (below)
+    datum_points = datum_sim = None
+    if datum_problem.datum is Datum.FREE:
+        # as the single-camera result: S-transformed onto the approximate coordinates,
+        # a fit that targets drifted off along one ray cannot pull
+        fit = free[~lost[free]] if np.sum(~lost[free]) >= 3 else free
+        datum_sim, kept_fit = fit_similarity_trimmed(
+            xyz_solver[fit], np.asarray(rig.target_xyz, float)[fit]
+        )
+        datum_points = fit[kept_fit]
+    cov_t = rig_target_covariances(
+        problems,
+        final,
+        w_of,
+        set(fixed_intrinsics or ()),
+        bool(fixed_extrinsics),
+        xyz_solver,
+        datum_points,
+    )
+    full = None
+    if cov_t is not None:
+        full = np.sqrt(np.maximum(np.linalg.eigvalsh(cov_t)[:, -1], 0.0))
+        full[np.isfinite(sigma) & (sigma == 0)] = 0.0
+    weak_limit, weak = weak_targets(xyz_solver[used], (meet if full is None else full)[used])
+    if weak.any():
+        notes.append(
+            f"{int(weak.sum())} of {len(used)} adjusted targets are weakly determined: "
+            "sigma along the worst direction above 2 % of the targets' extent (rays that "
+            "meet at small angles, or poses the network holds poorly; listed in "
+            "target_precision)"
         )
 
     # results, in the files' convention
@@ -671,17 +833,17 @@ def adjust_rig_jointly(
         ext[ids[c]] = _pose(final.atPose3(extrinsics_key(c)).inverse())
     own = {k: _pose(final.atPose3(k).inverse()) for k in own_poses}
     scale = 1.0
-    if datum_problem.datum is Datum.FREE:
-        # as the single-camera result: S-transformed onto the approximate coordinates,
-        # a fit that targets drifted off along one ray cannot pull
-        fit = free[~lost[free]] if np.sum(~lost[free]) >= 3 else free
-        sim, _ = fit_similarity_trimmed(xyz[fit], np.asarray(rig.target_xyz, float)[fit])
+    if datum_sim is not None:
+        sim = datum_sim
         xyz[free] = sim.apply(xyz[free])
         rig_R, rig_t = sim.apply_to_cam_from_world(rig_R.reshape(-1, 3, 3), rig_t.reshape(-1, 3))
         for k, (R, t) in own.items():
             R2, t2 = sim.apply_to_cam_from_world(R[None], t[None])
             own[k] = (R2[0], t2[0])
         scale = sim.scale
+        meet = meet * scale
+        full = None if full is None else full * scale
+        weak_limit *= scale
         ext = {cid: (R, scale * t) for cid, (R, t) in ext.items()}
         cov_ext = {
             cid: None
@@ -728,6 +890,14 @@ def adjust_rig_jointly(
         cam_from_world=cam_from_world,
         target_xyz={rig.target_ids[j]: xyz[j] for j in np.unique(obs_target) if not lost[j]},
         undetermined_targets=[rig.target_ids[j] for j in np.flatnonzero(lost)],
+        undetermined_reasons={rig.target_ids[j]: why for j, why in sorted(reasons.items())},
+        target_precision={
+            "target": [rig.target_ids[j] for j in used],
+            "intersection_sigma": meet[used],
+            "weak": weak,
+            **({} if full is None else {"sigma": full[used]}),
+        },
+        weak_target_limit=float(weak_limit),
         max_incidence_deg=max_incidence,
         loss=str(loss),
         cameras=cameras,
