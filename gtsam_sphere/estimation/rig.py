@@ -1034,6 +1034,12 @@ def run_cli(args, base: CalibrationOptions, progress: Callable[[str], None] | No
                     f"{_fmt(pr['baseline_sigma'])} {calib.units} (joint adjustment)"
                 )
         print(line)
+    print(
+        f"  targets adjusted / undetermined / weak: {st['n_targets']} / "
+        f"{st.get('n_targets_undetermined', 0)} / {st.get('n_targets_weak', 0)}"
+    )
+    for note in st.get("warnings", []):
+        logger.warning("%s", note)
     for reason in st["distrust"]:
         print(f"warning: do not trust this result: {reason}", file=sys.stderr)
     return 0 if st["trusted"] else 1
