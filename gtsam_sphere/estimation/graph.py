@@ -979,6 +979,26 @@ class BundleProblem:
             self.target_sigma,
         )
 
+    def observation_jacobians(self, values: gtsam.Values):
+        """Every observation's Jacobian at ``values``, in this problem's order.
+
+        The factor engine's analytic ``d(measured - predicted) / dx`` (unweighted; NaN
+        set to 0) with the columns of its
+        :class:`~gtsam_sphere.estimation.engine.ProjectionModel`: the pose (6), the
+        point (3), the intrinsics (``model.n_theta``) and, for a rig, ``rig_from_cam``
+        (6). The blocks must be built.
+
+        Returns
+        -------
+        J : ndarray, shape (N, 2, columns)
+        model : ProjectionModel
+        """
+        engine, _ = self.blocks[0].engine()
+        _, J_e = engine.jacobians_px(values)  # (2, columns, n), engine order
+        J = np.zeros((len(self.uv_px), 2, J_e.shape[1]))
+        J[np.concatenate(self.block_obs)] = J_e.transpose(2, 0, 1)
+        return np.nan_to_num(J), engine.model
+
     def target_covariances(
         self,
         values: gtsam.Values,
@@ -998,14 +1018,10 @@ class BundleProblem:
         """
         if not self.blocks or len(self.uv_px) == 0:
             return None
-        engine, _ = self.blocks[0].engine()
-        if engine.model.k_ext is not None:
+        J, model = self.observation_jacobians(values)
+        if model.k_ext is not None:
             return None
-        _, J_e = engine.jacobians_px(values)  # (2, columns, n), engine order
-        J = np.zeros((len(self.uv_px), 2, J_e.shape[1]))
-        J[np.concatenate(self.block_obs)] = J_e.transpose(2, 0, 1)
-        J = np.nan_to_num(J)
-        n_theta = 0 if self.fixed_intrinsics is not None else engine.model.n_theta
+        n_theta = 0 if self.fixed_intrinsics is not None else model.n_theta
         images = np.unique(self.obs_image)
         cols, n_c = pose_and_intrinsics_columns(np.searchsorted(images, self.obs_image), n_theta)
         return target_covariances(

@@ -294,19 +294,15 @@ def rig_target_covariances(
         p = problems[cid]
         if not p.blocks or len(p.uv_px) == 0:
             continue
-        engine, _ = p.blocks[0].engine()
-        _, J_e = engine.jacobians_px(values)
-        J = np.zeros((len(p.uv_px), 2, J_e.shape[1]))
-        J[np.concatenate(p.block_obs)] = J_e.transpose(2, 0, 1)
-        J = np.nan_to_num(J)
-        n_model = engine.model.n_theta
+        J, model = p.observation_jacobians(values)
+        n_model = model.n_theta
         n_th = 0 if cid in held_intrinsics else n_model
         pk = np.asarray(p.image_pose_keys, np.int64)[p.obs_image]
         ek = np.full(len(pk), -1, np.int64)
         if p.image_extrinsic_keys is not None and not held_extrinsics:
             ek = np.asarray(p.image_extrinsic_keys, np.int64)[p.obs_image]
         J_ext = J[:, :, 9 + n_model : 15 + n_model]
-        if engine.model.k_ext is None:
+        if model.k_ext is None:
             J_ext = np.zeros((len(pk), 2, 6))
         per_cam.append((cid, p, J, n_th, pk, ek, J_ext))
         pose_keys.update(pk.tolist())
