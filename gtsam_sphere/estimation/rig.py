@@ -573,36 +573,46 @@ def calibrate_rig(
     framed = {i for i, f in zip(rig.image_ids, rig.image_frame) if f}
     calibs: dict[str, Calibration] = {}
     failures: list[tuple[str, BaseException]] = []
-    for k, cid in enumerate(ids):
-        ds = datasets[cid]
-        say(
-            f"camera {cid} ({k + 1}/{len(ids)}): {len(ds.image_ids)} images, "
-            f"{ds.n_observations} observations, model {per_camera[cid].model}"
-        )
+    # a camera's targets seen once: its own adjustment leaves them out and warns, but
+    # the joint graph takes them back and reports what it cannot determine itself
+    held = _HeldForTheJoint(say) if joint else None
+    diagnose_log = logging.getLogger(f"{__package__}.diagnose")
+    if held is not None:
+        diagnose_log.addFilter(held)
+    try:
+        for k, cid in enumerate(ids):
+            ds = datasets[cid]
+            say(
+                f"camera {cid} ({k + 1}/{len(ids)}): {len(ds.image_ids)} images, "
+                f"{ds.n_observations} observations, model {per_camera[cid].model}"
+            )
 
-        def prefixed(line: str, cid: str = cid) -> None:
-            say(f"[{cid}] {line}")
+            def prefixed(line: str, cid: str = cid) -> None:
+                say(f"[{cid}] {line}")
 
-        try:
             try:
-                calibs[cid] = calibrate(ds, per_camera[cid], prefixed, keep_connected=False)
-            except DegenerateGeometryError as exc:
-                part = largest_connected_part(ds, exc, framed, joint)
-                if part is None:
-                    raise
-                main, rest = part
-                say(
-                    f"camera {cid}: its own images form groups that share no target; "
-                    f"calibrating it on the largest group ({len(main.image_ids)} images); "
-                    f"the other {len(set(rest['image']))} images join in the rig's joint "
-                    "adjustment through their frames"
-                )
-                calibs[cid] = calibrate(main, per_camera[cid], prefixed, keep_connected=False)
-                calibs[cid].extra["joint_only_observations"] = rest
-                calibs[cid].statistics["n_images_joint_only"] = len(set(rest["image"]))
-        except (DatasetError, ValueError) as exc:  # bad or degenerate input of this camera
-            failures.append((cid, exc))
-            say(f"camera {cid}: calibration failed: {exc}")
+                try:
+                    calibs[cid] = calibrate(ds, per_camera[cid], prefixed, keep_connected=False)
+                except DegenerateGeometryError as exc:
+                    part = largest_connected_part(ds, exc, framed, joint)
+                    if part is None:
+                        raise
+                    main, rest = part
+                    say(
+                        f"camera {cid}: its own images form groups that share no target; "
+                        f"calibrating it on the largest group ({len(main.image_ids)} images); "
+                        f"the other {len(set(rest['image']))} images join in the rig's joint "
+                        "adjustment through their frames"
+                    )
+                    calibs[cid] = calibrate(main, per_camera[cid], prefixed, keep_connected=False)
+                    calibs[cid].extra["joint_only_observations"] = rest
+                    calibs[cid].statistics["n_images_joint_only"] = len(set(rest["image"]))
+            except (DatasetError, ValueError) as exc:  # bad or degenerate input of this camera
+                failures.append((cid, exc))
+                say(f"camera {cid}: calibration failed: {exc}")
+    finally:
+        if held is not None:
+            diagnose_log.removeFilter(held)
     if failures:
         lines = "; ".join(f"camera {cid!r}: {' '.join(str(e).split())}" for cid, e in failures)
         raise DatasetError(
@@ -611,6 +621,27 @@ def calibrate_rig(
         ) from failures[0][1]
 
     return assemble_rig(rig, calibs, per_camera, say, joint, knn_rounds=knn_rounds)
+
+
+class _HeldForTheJoint(logging.Filter):
+    """Turns a rig camera's ``undetermined-targets`` warnings into progress lines.
+
+    Its own adjustment leaves out the targets it sees in one image only, and
+    :mod:`.diagnose` warns "capture more images"; in a rig the joint adjustment takes
+    those observations back (another camera may see the target), and its own notes say
+    which targets stay undetermined. ``say`` receives the line instead.
+    """
+
+    def __init__(self, say: Callable[[str], None]):
+        super().__init__()
+        self.say = say
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        message = record.getMessage()
+        if f"[{ProblemCode.UNDETERMINED_TARGETS}]" not in message:
+            return True
+        self.say(f"{message.split(' -> ')[0]} (the joint adjustment takes them back)")
+        return False
 
 
 #: reasons not to trust a camera's own adjustment that the joint adjustment settles for a
