@@ -2571,11 +2571,11 @@ def _result(dataset, problem, adj, correction, history, options, n_input_images)
         np.flatnonzero(targets_lost_to_outliers(dataset, outlier)).tolist(),
         LOST_TO_OUTLIERS_REASON,
     )
-    observed = np.bincount(dataset.obs_target, minlength=len(dataset.target_ids)) > 0
+    seen = np.bincount(dataset.obs_target, minlength=len(dataset.target_ids)) > 0
     no_sigma = np.zeros(len(dataset.target_ids), bool)
     no_sigma[problem.free_targets] = True
     no_sigma &= ~np.isfinite(problem.target_sigma)
-    settled = observed & ~np.isin(np.arange(len(no_sigma)), list(lost_reason))
+    settled = seen & ~np.isin(np.arange(len(no_sigma)), list(lost_reason))
     extent = targets_extent(xyz[settled])
     for j in np.flatnonzero(unfixed_targets(meet_sigma, settled & no_sigma, extent)).tolist():
         lost_reason.setdefault(j, UNFIXED_REASON)
