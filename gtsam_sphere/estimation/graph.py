@@ -925,22 +925,21 @@ class BundleProblem:
             out[idx] = block.residuals_px(values)
         return out
 
-    def target_jacobians(self, values: gtsam.Values) -> np.ndarray:
+    def target_jacobians(self, values: gtsam.Values, jacobians=None) -> np.ndarray:
         """Derivative of each observation's predicted pixel by its target, (N, 2, 3).
 
         Analytic, from the factor engine's Jacobian (the world-point columns of
         :meth:`~gtsam_sphere.estimation.engine.ProjectionModel.jacobian`, unweighted), in
         px per dataset unit; zero for exact targets (not variables). The blocks must be
-        built. :meth:`target_jacobians_numerical` is the central-difference reference.
+        built. ``jacobians``: :meth:`observation_jacobians` at ``values`` when already
+        evaluated. :meth:`target_jacobians_numerical` is the central-difference reference.
         """
-        J = np.zeros((len(self.uv_px), 2, 3))
         if len(self.free_targets) == 0 or not self.blocks:
-            return J
-        engine, _ = self.blocks[0].engine()
-        _, J_e = engine.jacobians_px(values)  # d(measured - predicted) / dx
-        J[np.concatenate(self.block_obs)] = -J_e[:, engine.model.point_columns].transpose(2, 0, 1)
-        J[self.fixed[self.obs_target]] = 0.0
-        return np.nan_to_num(J)
+            return np.zeros((len(self.uv_px), 2, 3))
+        J, model = jacobians if jacobians is not None else self.observation_jacobians(values)
+        out = -J[:, :, model.point_columns]  # d(predicted) / d(point)
+        out[self.fixed[self.obs_target]] = 0.0
+        return out
 
     def target_jacobians_numerical(self, values: gtsam.Values) -> np.ndarray:
         """:meth:`target_jacobians` by central differences (the reference of the tests).
@@ -1018,14 +1017,15 @@ class BundleProblem:
         """
         if not self.blocks or len(self.uv_px) == 0:
             return None
-        J, model = self.observation_jacobians(values)
+        jacobians = self.observation_jacobians(values)
+        J, model = jacobians
         if model.k_ext is not None:
             return None
         n_theta = 0 if self.fixed_intrinsics is not None else model.n_theta
         images = np.unique(self.obs_image)
         cols, n_c = pose_and_intrinsics_columns(np.searchsorted(images, self.obs_image), n_theta)
         return target_covariances(
-            self.target_jacobians(values),
+            self.target_jacobians(values, jacobians),
             np.concatenate([J[:, :, 0:6], J[:, :, 9 : 9 + n_theta]], axis=2),
             cols,
             n_c,

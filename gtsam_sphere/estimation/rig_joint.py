@@ -294,7 +294,8 @@ def rig_target_covariances(
         p = problems[cid]
         if not p.blocks or len(p.uv_px) == 0:
             continue
-        J, model = p.observation_jacobians(values)
+        jacobians = p.observation_jacobians(values)
+        J, model = jacobians
         n_model = model.n_theta
         n_th = 0 if cid in held_intrinsics else n_model
         pk = np.asarray(p.image_pose_keys, np.int64)[p.obs_image]
@@ -304,7 +305,7 @@ def rig_target_covariances(
         J_ext = J[:, :, 9 + n_model : 15 + n_model]
         if model.k_ext is None:
             J_ext = np.zeros((len(pk), 2, 6))
-        per_cam.append((cid, p, J, n_th, pk, ek, J_ext))
+        per_cam.append((cid, p, J, n_th, pk, ek, J_ext, p.target_jacobians(values, jacobians)))
         pose_keys.update(pk.tolist())
         ext_keys.update(ek[ek >= 0].tolist())
     if not per_cam:
@@ -315,12 +316,12 @@ def rig_target_covariances(
         column[k] = offset
         offset += 6
     theta_at = {}
-    for cid, _, _, n_th, _, _, _ in per_cam:
+    for cid, _, _, n_th, _, _, _, _ in per_cam:
         theta_at[cid] = offset
         offset += n_th
-    width = max(12 + n_th for _, _, _, n_th, _, _, _ in per_cam)
+    width = max(12 + n_th for _, _, _, n_th, _, _, _, _ in per_cam)
     J_t, J_c, cols, obs, w = [], [], [], [], []
-    for cid, p, J, n_th, pk, ek, J_ext in per_cam:
+    for cid, p, J, n_th, pk, ek, J_ext, J_target in per_cam:
         n = len(pk)
         c = np.full((n, width), -1, np.intp)
         jc = np.zeros((n, 2, width))
@@ -333,7 +334,7 @@ def rig_target_covariances(
             starts = np.array([column.get(k, -1) for k in ek.tolist()])
             c[has, 6 + n_th : 12 + n_th] = starts[has, None] + np.arange(6)
             jc[has, :, 6 + n_th : 12 + n_th] = J_ext[has]
-        J_t.append(p.target_jacobians(values))
+        J_t.append(J_target)
         J_c.append(jc)
         cols.append(c)
         obs.append(p.obs_target)
@@ -819,9 +820,7 @@ def adjust_rig_jointly(
         )
 
     # results, in the files' convention
-    xyz = np.asarray(rig.target_xyz, float).copy()
-    for j in free:
-        xyz[j] = final.atPoint3(point_key(int(j)))
+    xyz = xyz_solver.copy()
     rig_R = np.array([_pose(final.atPose3(frame_key(k)).inverse())[0] for k in range(len(frames))])
     rig_t = np.array([_pose(final.atPose3(frame_key(k)).inverse())[1] for k in range(len(frames))])
     ext = {ids[0]: (np.eye(3), np.zeros(3))}
