@@ -235,12 +235,16 @@ def _fold_branch(
             },
         )
 
-    def fake_once(dataset, options, progress, init_in=None, fold_probe=False):
-        calls.append((str(options.model), init_in, fold_probe))
+    def fake_once(
+        dataset, options, progress, init_in=None, fold_probe=False, first_sigma_limit_px=None
+    ):
+        calls.append((str(options.model), init_in, fold_probe, first_sigma_limit_px))
         if len(calls) == 1:
             raise cal_mod._FoldsEarly(init, "the initial lens folds at 90.0 deg", radial_sigma_px)
         if options.model.uses_radial:
             return result(options.model, True, 0.3), init_in
+        if first_sigma_limit_px is not None and sphere_sigma_px > first_sigma_limit_px:
+            raise cal_mod._FitsWorse(sphere_sigma_px)  # stopped after its first adjustment
         return result(options.model, sphere_trusted, sphere_sigma_px), init_in
 
     monkeypatch.setattr(cal_mod, "_calibrate_once", fake_once)
@@ -284,11 +288,16 @@ def test_an_early_fold_rejects_a_trusted_sphere_model_that_fits_clearly_worse(mo
     # a lens whose rim is only squeezed (a 215 deg catadioptric lens): the sphere model
     # fit at 2.65 px against the folding radial stage's 1.01 px, and its kNN rounds
     # learned the misfit: trusted at 20x the oracle's 3D error before this rule
+    import gtsam_sphere.estimation.calibrate as cal_mod
+
     calib, calls, lines = _fold_branch(
         monkeypatch, sphere_trusted=True, radial_sigma_px=1.01, sphere_sigma_px=2.65
     )
     assert [c[0] for c in calls] == ["radial+knn", "brown+knn", "radial+knn"]
     assert calls[2][2] is False  # the radial run again, without the probe
+    # the sphere run is given the limit beyond which it stops after its first adjustment
+    assert calls[1][3] == pytest.approx(cal_mod.SPHERE_FIT_RATIO * 1.01)
+    assert calls[0][3] is None and calls[2][3] is None
     assert calib.model == "radial+knn" and "model_fallback" not in calib.statistics
     assert any(
         "fits worse than the radial mapping where it folded (robust sigma 2.650 px against "
@@ -794,11 +803,14 @@ def test_an_untrusted_radial_result_tries_the_folded_lens_the_search_scored(monk
             progress,
             init_in=None,
             fold_probe=False,
+            first_sigma_limit_px=None,
             init=init,
             calls=calls,
             n_outliers=n_outliers,
         ):
             calls.append((str(options.model), init_in))
+            if not options.model.uses_radial:
+                assert first_sigma_limit_px == pytest.approx(cal_mod.SPHERE_FIT_RATIO * 2.3)
             if options.model.uses_radial:
                 return result(options.model, False, 2.3, n_outliers), init
             return result(options.model, True, 1.0, 0), init_in
@@ -835,6 +847,27 @@ def test_a_fold_where_no_target_was_seen_is_named_as_such():
     msg = fold_reason(120.0, 150.0, dense)
     assert "inside the observed field (150.0 deg)" in msg and "--radial-terms" in msg
     assert "inside the observed field" in fold_reason(120.0, 150.0, [])
+
+
+def test_a_fold_off_the_sensor_is_told_from_one_on_it():
+    """A mapping close to ``c sin(alpha)`` folds near 91 deg at a radius of about 1.0 c:
+    with c = 3000 px on a 4000x3000 sensor every ray there images beyond its corners
+    (2500 px from the principal point); with c = 1500 px it images on the sensor; a
+    mapping that never folds has no fold to place."""
+    from gtsam_sphere.core.camera import SphereCamera
+    from gtsam_sphere.estimation.calibrate import fold_off_sensor
+
+    a0 = np.pi / 2  # radial_g's coefficients multiply (alpha / a0)^(2i+3)
+    sine = {"g3": -(a0**2) / 6.0, "g5": a0**4 / 120.0}  # alpha - alpha^3/6 + alpha^5/120
+    wide = SphereCamera(4000, 3000, 1999.5, 1499.5, 3000.0, radial=sine)
+    assert 85.0 < np.degrees(wide.max_alpha_rad()) < 95.0
+    assert fold_off_sensor(wide)
+    # the same lens 10 % off centre: a corner 2800 px away, the fold still beyond it
+    assert fold_off_sensor(SphereCamera(4000, 3000, 2199.5, 1649.5, 3000.0, radial=sine))
+    assert not fold_off_sensor(SphereCamera(4000, 3000, 1999.5, 1499.5, 1500.0, radial=sine))
+    # off centre so that one side of the fold lands on the sensor
+    assert not fold_off_sensor(SphereCamera(4000, 3000, 3499.5, 1499.5, 2800.0, radial=sine))
+    assert not fold_off_sensor(SphereCamera(4000, 3000, 1999.5, 1499.5, 3000.0, radial={}))
 
 
 def test_fits_worse_than_reference_compares_the_median_scales():

@@ -1002,6 +1002,15 @@ class _FoldsEarly(Exception):
         self.sigma_px = sigma_px
 
 
+class _FitsWorse(Exception):
+    """A run stopped after its first adjustment: its robust scale ``sigma_px`` (px) is
+    above the limit it was given (another model already fits clearly better)."""
+
+    def __init__(self, sigma_px: float):
+        super().__init__(f"robust sigma {sigma_px:.3f} px")
+        self.sigma_px = sigma_px
+
+
 def _folds_like_a_sphere_deg(fold_deg: float, seen_deg: float) -> bool:
     """:func:`_folds_like_a_sphere`'s test on the fold and the widest ray (degrees)."""
     return fold_deg < seen_deg and 80.0 <= fold_deg <= 100.0 and seen_deg > 90.0
@@ -1075,6 +1084,7 @@ def _calibrate_once(
     init: Initialisation | None = None,
     fold_probe: bool = False,
     station_sigma: bool = False,
+    first_sigma_limit_px: float | None = None,
 ) -> tuple[Calibration, Initialisation]:
     """One calibration run (see :func:`calibrate`); returns it and its initialisation.
 
@@ -1082,6 +1092,9 @@ def _calibrate_once(
     orthographic one, or when the first adjustment's radial mapping already folds like a
     sphere (the rest of the radial run would only end in the same fold, and
     :func:`calibrate` then tries the sphere model first).
+
+    ``first_sigma_limit_px``: raise :class:`_FitsWorse` when the first adjustment's
+    robust sigma (px) is above it (the rest of the run would not be kept).
 
     ``station_sigma``: also the standard deviation of each image's camera centre (the
     square root of the trace of its position covariance, dataset units) from the
@@ -1188,6 +1201,8 @@ def _calibrate_once(
         # adjusts this problem again
         problem, adj = select_warp(problem, adj, opt, say, options.sigma_px is None)
     first_sigma_px = adj.sigma_px
+    if first_sigma_limit_px is not None and first_sigma_px > first_sigma_limit_px:
+        raise _FitsWorse(first_sigma_px)
     repaired = repair_poses(problem, adj, dataset, rng, say)
     if repaired:
         adj = readjust(problem, adj, opt, say, options.sigma_px is None)
@@ -1440,7 +1455,20 @@ def calibrate(
             f"sphere model{' (with ' + ', '.join(terms) + ')' if terms else ''} (a lens "
             "that folds, e.g. orthographic past 180 deg)"
         )
-        alt, _ = _calibrate_once(dataset, fallback_options, progress, init)
+        # stopped after its first adjustment when that already fits clearly worse: the
+        # rest (kNN rounds, covariance) would not be kept (10 of 16 s of a 262 deg sphere
+        # lens seen on both sides of its fold, beyond a 4000x3000 sensor)
+        limit = None if radial_sigma_px is None else SPHERE_FIT_RATIO * radial_sigma_px
+        try:
+            alt, _ = _calibrate_once(
+                dataset, fallback_options, progress, init, first_sigma_limit_px=limit
+            )
+        except _FitsWorse as worse:
+            say(
+                f"the sphere model {sphere_fits_worse(worse.sigma_px, radial_sigma_px)}: the "
+                f"{options.model} model after all"
+            )
+            return None
         why = "is not trusted" if not alt.statistics["trusted"] else ""
         why = why or sphere_fits_worse(alt.statistics["first_sigma_px"], radial_sigma_px)
         why = why or sphere_learns_a_misfit(alt.statistics.get("knn_rounds", 0))
@@ -2350,6 +2378,56 @@ def fold_reason(fold_deg: float, seen_deg: float, incidence_deg) -> str:
     )
 
 
+def fold_off_sensor(camera, n_azimuths: int = 72) -> bool:
+    """Whether the rays at the radial mapping's fold all image off the sensor.
+
+    A lens that folds (a sphere lens past 180 deg: ``r = c sin(alpha)``) whose fold
+    lies beyond the sensor's corners images no ray near the fold, so no target can be
+    observed there; the rays seen beyond the fold come back onto the image. A 262 deg
+    sphere lens on a 4000x3000 sensor (``bench_lens_zoo.py --stress 40 --seed 225
+    --targets --defects`` s06) saw its targets up to 58 deg and again from 122 to
+    131 deg, folded at 89.8 deg some 3000 px from the principal point against
+    corners within 2660 px, and was distrusted for the gap at 0.64x the oracle's 3D
+    error.
+
+    Parameters
+    ----------
+    camera : SphereCamera
+        With a radial mapping.
+    n_azimuths : int
+        Rays at the fold angle tried around the axis.
+
+    Returns
+    -------
+    bool
+        True when every ray at the fold projects outside ``[-0.5, width - 0.5] x
+        [-0.5, height - 0.5]`` (pixels); False when one lands on the sensor or does
+        not project.
+    """
+    alpha = camera.max_alpha_rad()
+    if alpha >= math.pi:
+        return False
+    az = np.linspace(0.0, 2.0 * math.pi, n_azimuths, endpoint=False)
+    rays = np.stack(
+        [
+            math.sin(alpha) * np.cos(az),
+            math.sin(alpha) * np.sin(az),
+            np.full_like(az, math.cos(alpha)),
+        ],
+        axis=1,
+    )
+    uv = camera.project(rays, valid_only=False)
+    if not np.all(np.isfinite(uv)):
+        return False
+    inside = (
+        (uv[:, 0] >= -0.5)
+        & (uv[:, 0] <= camera.width - 0.5)
+        & (uv[:, 1] >= -0.5)
+        & (uv[:, 1] <= camera.height - 0.5)
+    )
+    return not bool(inside.any())
+
+
 def distrust_reasons(
     calib: Calibration,
     cov_theta,
@@ -2383,7 +2461,16 @@ def distrust_reasons(
             )
         )
     cam = calib.camera
-    if cam.radial is not None and np.degrees(cam.max_alpha_rad()) < st["max_incidence_deg"]:
+    fold_deg = float(np.degrees(cam.max_alpha_rad()))
+    if cam.radial is not None and fold_deg < st["max_incidence_deg"] and fold_off_sensor(cam):
+        # a lens that folds (a sphere lens past 180 deg) seen on both sides of its fold
+        logger.info(
+            "the radial mapping folds at %.1f deg, where the image of every ray lies off "
+            "the sensor: the rays seen beyond it (to %.1f deg) come back onto the image",
+            fold_deg,
+            st["max_incidence_deg"],
+        )
+    elif cam.radial is not None and fold_deg < st["max_incidence_deg"]:
         incidence = calib.extra.get("observations", {}).get("incidence_deg")
         out.append(
             (

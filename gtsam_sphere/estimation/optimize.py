@@ -519,6 +519,7 @@ class GraphBackend:
         self.zero = self.values.zeroVectors()
         self.damping = LambdaDamping((k, len(self.zero.at(k))) for k in self.values.keys())
         self.lin = self.delta = self._trial = None
+        self.use_qr = False
         self.model_cost = math.nan
         self._first_trial = True
 
@@ -533,12 +534,30 @@ class GraphBackend:
         self._first_trial = True
 
     def solve(self, lam: float) -> float | None:
-        """Multifrontal elimination of the damped system (Cholesky preferred)."""
+        """Multifrontal elimination of the damped system: Cholesky, then QR for good.
+
+        Cholesky factors the normal equations, which square the Jacobian's condition
+        number; it finds a damped system indeterminate that is not (``lambda > 0``) when
+        that number nears ``1e8`` (a radial mapping of six terms over 130 degrees of
+        incidence). LM then raised the damping instead and crawled: a 262 deg sphere
+        lens took 100 iterations at 1 % each, where QR of the Jacobian (twice the
+        elimination time) converges in 7. So the first indeterminate Cholesky is
+        retried with QR, and this backend keeps QR.
+        """
+        damped = self.damping.damped(self.lin, lam)
         try:
-            self.delta = self.damping.damped(self.lin, lam).optimize(self.ordering)
+            if self.use_qr:
+                self.delta = damped.optimize(self.ordering, gtsam.EliminateQR)
+            else:
+                self.delta = damped.optimize(self.ordering)
         except RuntimeError as exc:
             if "ndeterminate" not in str(exc):
                 raise
+            if self.use_qr:
+                return None
+            self.use_qr = True
+            return self.solve(lam)
+        if not np.all(np.isfinite(self.delta.vector())):
             return None
         return self.model_cost - self.lin.error(self.delta)
 
