@@ -372,6 +372,49 @@ def test_a_split_camera_that_did_not_converge_alone_is_settled_by_the_joint_grap
     _within_three_sigma(calib, sim.cameras[1])
 
 
+def test_a_camera_fitted_exactly_alone_starts_the_joint_graph_at_the_others_scale():
+    """A camera whose own calibration had no redundancy (RMS below the scale floor)
+    starts from the median scale of the cameras that had some; the others keep theirs,
+    and with no camera redundant (noise-free data) each keeps its own."""
+    from types import SimpleNamespace
+
+    from gtsam_sphere.estimation.rig_joint import MIN_SIGMA_PX, start_sigma_px
+
+    def calib(sigma_px, rms_px):
+        return SimpleNamespace(statistics={"sigma_px": sigma_px, "rms_px": rms_px})
+
+    calibs = {
+        "a": calib(0.30, 0.33),
+        "b": calib(MIN_SIGMA_PX, 1e-13),
+        "c": calib(0.50, 0.52),
+        "d": calib(0.10, 0.11),
+    }
+    assert start_sigma_px(calibs, ["a", "b", "c", "d"]) == {
+        "a": 0.30,
+        "b": pytest.approx(0.30),
+        "c": 0.50,
+        "d": 0.10,
+    }
+    exact = {"a": calib(MIN_SIGMA_PX, 1e-12), "b": calib(MIN_SIGMA_PX, 2e-13)}
+    assert start_sigma_px(exact, ["a", "b"]) == {"a": MIN_SIGMA_PX, "b": MIN_SIGMA_PX}
+
+
+@pytest.mark.slow  # a two-camera rig of 6 frames, ~8 s
+def test_a_camera_fitted_exactly_alone_gets_an_honest_cam_from_rig_sigma():
+    """Free mixed rig, 6 frames, seed 7: the pinhole's largest group is 2 images, fitted
+    exactly alone (RMS 1e-13 px, the scale at its 0.005 px floor). Started from that
+    scale, the joint stages crept to 0.037 px against 0.3 px of noise and its
+    cam_from_rig rotation was 5.6 sigma off the truth, trusted; started from the
+    fisheye's scale, its joint scale is the noise's and the truth within 3 sigma."""
+    sim = simulate_rig(RigOptions(rig="mixed", n_frames=6, seed=7))
+    lines = []
+    calib = calibrate_rig(parse_rig_dataset(_free(sim.dataset)), progress=lines.append)
+    own = calib.statistics["cameras"]["pinhole"]
+    assert own["rms_px"] < 1e-3 and own["n_images_joint_only"] >= 1
+    assert 0.2 < own["sigma_px_rig"] < 0.45  # the simulation's noise: 0.3 px per axis
+    _within_three_sigma(calib, sim.cameras[1])
+
+
 def _within_three_sigma(calib, cam):
     """``cam``'s ``cam_from_rig`` within 3 reported sigma of the truth (rotation, t)."""
     R, t = calib.cam_from_rig[cam.id]
