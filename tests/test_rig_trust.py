@@ -415,6 +415,26 @@ def test_a_camera_fitted_exactly_alone_gets_an_honest_cam_from_rig_sigma():
     _within_three_sigma(calib, sim.cameras[1])
 
 
+@pytest.mark.slow  # a two-camera rig of 6 frames, ~10 s
+def test_a_camera_no_group_of_which_calibrates_alone_is_seeded_for_the_joint_graph():
+    """Free mixed rig, 6 frames, seed 3: the pinhole's images form groups of 3, 2 and 1
+    that share no target, and in the largest the targets are each seen once, so it
+    cannot be calibrated alone (the rig was refused). Seeded on all its images with the
+    targets held near their approximate coordinates, the joint graph calibrates it:
+    trusted, said in the progress, ``cam_from_rig`` within 3 reported sigma."""
+    from gtsam_sphere.estimation.rig import SEED_TARGET_SIGMA_FRACTION
+
+    sim = simulate_rig(RigOptions(rig="mixed", n_frames=6, seed=3))
+    lines = []
+    calib = calibrate_rig(parse_rig_dataset(_free(sim.dataset)), progress=lines.append)
+    assert calib.statistics["trusted"], calib.statistics["distrust"]
+    own = calib.statistics["cameras"]["pinhole"]
+    extent = own["seeded_on_approximate_targets"] / SEED_TARGET_SIGMA_FRACTION
+    assert 3.0 < extent < 20.0  # the room's size (m)
+    assert any("even its largest group cannot be calibrated alone" in ln for ln in lines)
+    _within_three_sigma(calib, sim.cameras[1])
+
+
 def _within_three_sigma(calib, cam):
     """``cam``'s ``cam_from_rig`` within 3 reported sigma of the truth (rotation, t)."""
     R, t = calib.cam_from_rig[cam.id]

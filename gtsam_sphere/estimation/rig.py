@@ -505,6 +505,70 @@ def largest_connected_part(
     return main, others
 
 
+#: a rig camera that cannot be calibrated alone, even on its largest group of images,
+#: is seeded with the free targets held at their approximate coordinates with this
+#: sigma, as a fraction of the targets' extent (:func:`_seed_on_approximate_targets`)
+SEED_TARGET_SIGMA_FRACTION = 0.01
+
+
+def _seed_on_approximate_targets(
+    dataset: Dataset,
+    options: CalibrationOptions,
+    progress: Callable[[str], None],
+    error: DegenerateGeometryError,
+    say: Callable[[str], None],
+    cid: str,
+) -> Calibration:
+    """A rig camera's own calibration when even its largest group of images cannot be
+    calibrated alone: every image, each free target a weighted control point at its
+    approximate coordinates (sigma :data:`SEED_TARGET_SIGMA_FRACTION` of the targets'
+    extent). Only a start for the joint adjustment, which frees the targets again and
+    adjusts the camera with the others (``statistics["seeded_on_approximate_targets"]``:
+    the sigma used; the joint adjustment then settles what :data:`JOINT_SETTLES`
+    lists). A narrow camera of a free-network rig (``simulate --rig mixed --frames 6
+    --seed 3``, every sigma removed) had 6 images in groups of 3, 2 and 1 that shared
+    no target, and in its largest group the targets were each seen once: the rig was
+    refused.
+
+    Parameters
+    ----------
+    dataset : Dataset
+        The camera's part of the rig.
+    options : CalibrationOptions
+    progress, say : callable(str)
+        The camera's prefixed progress, and the rig's.
+    error : DegenerateGeometryError
+        Why its largest group could not be calibrated (raised again when seeding fails
+        too, or when the dataset has no free target to seed with).
+    cid : str
+        The camera's id.
+
+    Returns
+    -------
+    Calibration
+    """
+    from .calibrate import targets_extent
+
+    free = np.isnan(dataset.target_sigma)
+    extent = targets_extent(dataset.target_xyz[np.unique(dataset.obs_target)])
+    if not free.any() or not extent > 0:
+        raise error
+    sigma = SEED_TARGET_SIGMA_FRACTION * extent
+    say(
+        f"camera {cid}: even its largest group cannot be calibrated alone ({error}); "
+        f"seeding it on all {len(dataset.image_ids)} of its images with the free targets "
+        f"held at their approximate coordinates (sigma {sigma:.4g} {dataset.units}); "
+        "the joint adjustment frees them again"
+    )
+    seeded = replace(dataset, target_sigma=np.where(free, sigma, dataset.target_sigma))
+    try:
+        calib = calibrate(seeded, options, progress, keep_connected=False)
+    except DegenerateGeometryError:
+        raise error from None
+    calib.statistics["seeded_on_approximate_targets"] = sigma
+    return calib
+
+
 def calibrate_rig(
     rig: RigDataset,
     options: CalibrationOptions | dict[str, CalibrationOptions] | None = None,
@@ -604,9 +668,17 @@ def calibrate_rig(
                         f"the other {len(set(rest['image']))} images join in the rig's joint "
                         "adjustment through their frames"
                     )
-                    calibs[cid] = calibrate(main, per_camera[cid], prefixed, keep_connected=False)
-                    calibs[cid].extra["joint_only_observations"] = rest
-                    calibs[cid].statistics["n_images_joint_only"] = len(set(rest["image"]))
+                    try:
+                        calibs[cid] = calibrate(
+                            main, per_camera[cid], prefixed, keep_connected=False
+                        )
+                    except DegenerateGeometryError as small:
+                        calibs[cid] = _seed_on_approximate_targets(
+                            ds, per_camera[cid], prefixed, small, say, cid
+                        )
+                    else:
+                        calibs[cid].extra["joint_only_observations"] = rest
+                        calibs[cid].statistics["n_images_joint_only"] = len(set(rest["image"]))
             except (DatasetError, ValueError) as exc:  # bad or degenerate input of this camera
                 failures.append((cid, exc))
                 say(f"camera {cid}: calibration failed: {exc}")
@@ -667,7 +739,10 @@ def _joint_determines(cid: str, statistics: dict, jr) -> bool:
     intrinsics, and the camera was calibrated alone on part of its images only."""
     return (
         jr is not None
-        and statistics.get("n_images_joint_only", 0) > 0
+        and (
+            statistics.get("n_images_joint_only", 0) > 0
+            or "seeded_on_approximate_targets" in statistics
+        )
         and jr.result.converged
         and jr.intrinsics_sigma.get(cid) is not None
     )
