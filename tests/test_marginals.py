@@ -56,3 +56,25 @@ def test_a_truly_singular_system_gives_none(monkeypatch):
     assert optimize.marginal_covariances(graph, values, [3]) is None
     values.insert(5, np.zeros(3))  # in the values, in no factor
     assert optimize.marginal_covariances(graph, values, [5]) is None
+
+
+def test_a_variable_without_information_is_left_out_of_the_others_marginals():
+    """A point whose only factor has a zero Jacobian (a target every observation of
+    which a robust stage weighted 0) makes the whole system singular; the other
+    variables' marginals are those of the graph without it, and its own is None."""
+    graph, values = _small_graph()
+    expected = optimize.marginal_covariances(graph, values, [2, 3])
+
+    def no_information(this, vals, H):
+        if H is not None:
+            H[0] = np.zeros((3, 3), order="F")
+        return np.zeros(3)
+
+    graph.add(gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(3), [7], no_information))
+    values.insert(7, np.array([5.0, 5.0, 5.0]))
+    with pytest.raises(RuntimeError):
+        gtsam.Marginals(graph, values)
+    got = optimize.marginal_covariances(graph, values, [2, 3])
+    np.testing.assert_allclose(got[2], expected[2], rtol=1e-9, atol=1e-15)
+    np.testing.assert_allclose(got[3], expected[3], rtol=1e-9, atol=1e-15)
+    assert optimize.marginal_covariances(graph, values, [2, 7]) is None

@@ -673,7 +673,8 @@ def marginal_covariances(
     value of the whitened Jacobian 2.5e6, and it reported "indeterminate near x5"), so
     when it raises, the same covariance comes from the normal equations
     ``H = A^T A`` of the whitened sparse Jacobian by an LU factorisation with
-    pivoting (SciPy's ``splu``), solved for the columns of ``keys`` only. A system
+    pivoting (SciPy's ``splu``), solved for the columns of ``keys`` only, without the
+    variables whose columns are all zero (no information, decoupled). A system
     that is singular there too (an exactly zero pivot, or a non-finite or
     non-positive variance) gives None.
 
@@ -717,13 +718,22 @@ def marginal_covariances(
         (triplets[2][in_a], (rows[in_a], columns[in_a])), shape=(int(rows.max()) + 1, start)
     )
     cols = np.concatenate([np.arange(offsets[k][0], sum(offsets[k])) for k in keys])
-    rhs = np.zeros((start, cols.size))
-    rhs[cols, np.arange(cols.size)] = 1.0
+    # a variable whose columns are all zero (a target whose every observation a robust
+    # stage weighted 0) is decoupled from the others: left out, their marginals are
+    # unchanged (stress 225 s22, a 151 deg room: one such target made the system
+    # singular, and the lens was reported "not determined")
+    used = np.asarray(A.multiply(A).sum(axis=0)).ravel() > 0
+    if not used[cols].all():
+        return None
+    A = A[:, used]
+    index = np.cumsum(used) - 1
+    rhs = np.zeros((A.shape[1], cols.size))
+    rhs[index[cols], np.arange(cols.size)] = 1.0
     try:
         solution = scipy.sparse.linalg.splu((A.T @ A).tocsc()).solve(rhs)
     except RuntimeError:  # exactly singular
         return None
-    block = solution[cols]
+    block = solution[index[cols]]
     block = 0.5 * (block + block.T)
     if not np.all(np.isfinite(block)) or np.any(np.diag(block) <= 0):
         return None
