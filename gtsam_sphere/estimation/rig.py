@@ -44,7 +44,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ..core.camera import Model
+from ..core.camera import Model, radial_terms
 from ..core.errors import DegenerateGeometryError
 from ..core.lie import nearest_rotation
 from ..core.lie import rotation_angle as rotation_angle  # re-exported
@@ -734,15 +734,21 @@ def _joint_unfolds(cid: str, jr) -> bool:
     return cam.radial is None or float(np.degrees(cam.max_alpha_rad())) >= field
 
 
+def _saw_part_alone(statistics: dict) -> bool:
+    """The camera's own calibration saw part of its images only (its largest group,
+    :func:`largest_connected_part`), or was a seed (:func:`_seed_on_approximate_targets`)."""
+    return (
+        statistics.get("n_images_joint_only", 0) > 0
+        or "seeded_on_approximate_targets" in statistics
+    )
+
+
 def _joint_determines(cid: str, statistics: dict, jr) -> bool:
     """The joint adjustment ``jr`` converged with a covariance of camera ``cid``'s
     intrinsics, and the camera was calibrated alone on part of its images only."""
     return (
         jr is not None
-        and (
-            statistics.get("n_images_joint_only", 0) > 0
-            or "seeded_on_approximate_targets" in statistics
-        )
+        and _saw_part_alone(statistics)
         and jr.result.converged
         and jr.intrinsics_sigma.get(cid) is not None
     )
@@ -838,6 +844,14 @@ def assemble_rig(
             fixed_extrinsics=fixed_extrinsics is not None,
             knn_rounds=knn_rounds,
             seed=first.seed,
+            reselect_terms={
+                c: (radial_terms(options[c].radial_terms), tuple(options[c].brown_terms or ()))
+                for c in ids
+                if _saw_part_alone(calibs[c].statistics)
+                and options[c].model.uses_radial
+                and options[c].select_terms
+                and options[c].fixed_intrinsics is None
+            },
         )
         adjustment = RIG_ADJUSTMENT
         for cid in ids[1:]:
