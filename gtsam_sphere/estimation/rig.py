@@ -54,7 +54,12 @@ from ..io.dataset import Dataset, DatasetError, RigDataset, read_json, split_rig
 from .calibrate import LOST_TO_OUTLIERS_REASON, CalibrationOptions, Distrust, calibrate
 from .diagnose import ProblemCode, image_groups
 from .optimize import OptimizerOptions
-from .rig_joint import adjust_rig_jointly, joint_images, precision_from_covariance
+from .rig_joint import (
+    MAX_STAGES,
+    adjust_rig_jointly,
+    joint_images,
+    precision_from_covariance,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -852,6 +857,10 @@ def assemble_rig(
                 c: (radial_terms(options[c].radial_terms), tuple(options[c].brown_terms or ()))
                 for c in ids
                 if _saw_part_alone(calibs[c].statistics)
+                # a seed saw every image (its targets held near their approximate
+                # coordinates): its term set stands (free mixed 6 frames seed 3: g3
+                # added back left 7 of its 165 observations carrying the noise)
+                and "seeded_on_approximate_targets" not in calibs[c].statistics
                 and options[c].model.uses_radial
                 and options[c].select_terms
                 and options[c].fixed_intrinsics is None
@@ -970,6 +979,21 @@ def assemble_rig(
                 distrust.append(f"camera {cid!r}: {reason}")
     if jr is not None and not jr.result.converged:
         distrust.append(f"the joint rig adjustment did not converge ({jr.result.describe()})")
+    for cid, usable in (jr.unestimated_scales if jr is not None else {}).items():
+        distrust.append(
+            f"camera {cid!r}: only {usable} of its observations carry the noise in the "
+            "joint rig adjustment (the others fix targets only its own rays see): its "
+            f"robust scale was held at {jr.sigma_px[cid]:.4f} px, and neither its fit nor "
+            "the precision of its cam_from_rig can be checked: capture views in which "
+            "the other cameras see its targets too"
+        )
+    for cid in jr.unsettled_scales if jr is not None else []:
+        distrust.append(
+            f"camera {cid!r}: its robust scale in the joint rig adjustment did not settle "
+            f"({jr.sigma_px[cid]:.4f} px after {MAX_STAGES} stages, or fallen to the "
+            "floor: its observations fitted exactly), so its weights and the precision of "
+            "its cam_from_rig are not reliable: too few observations for its parameters"
+        )
     if (
         jr is not None
         and fixed_extrinsics is None
