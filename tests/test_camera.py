@@ -349,3 +349,13 @@ def test_measurement_metric_reproduces_the_adjustments_residual():
     )
     folded = SphereCamera(width=100, height=100, xp=50, yp=50, c=40.0, brown={"a1": 1.0})
     assert np.isnan(folded.measurement_metric(uv)).all()
+
+
+def test_inside_image_is_the_sensor_s_outer_edges():
+    """Pixel centres run 0..width-1, so the edges are -0.5 and width - 0.5 (inclusive);
+    NaN is outside."""
+    cam = SphereCamera(640, 480, 319.5, 239.5, 300.0)
+    uv = np.array(
+        [[-0.5, -0.5], [639.5, 479.5], [-0.51, 10.0], [10.0, 479.51], [np.nan, 5.0], [320, 240]]
+    )
+    assert cam.inside_image(uv).tolist() == [True, True, False, False, False, True]

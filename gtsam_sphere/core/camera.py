@@ -1111,21 +1111,30 @@ class SphereCamera:
                 ok &= alpha <= self.region_alpha_rad(np.arctan2(p[:, 1], p[:, 0]))
             return ok
 
-    def valid_pixel_mask(self, uv_px: np.ndarray, exact: bool = False) -> np.ndarray:
-        """Raw pixels (N, 2) inside the image whose ray lies in the valid field, (N,) bool.
+    def inside_image(self, uv_px: np.ndarray) -> np.ndarray:
+        """Raw pixels (N, 2) in ``[-0.5, width - 0.5] x [-0.5, height - 0.5]``, (N,) bool.
 
-        In ``[-0.5, width - 0.5] x [-0.5, height - 0.5]`` and :meth:`unproject`
-        gives a ray within :meth:`valid_alpha_rad` (the front half for the
-        sphere mapping without a fold, :meth:`pixel_hemisphere` with one).
+        ``(0, 0)`` is the centre of the top-left pixel, so these are the sensor's
+        outer edges; NaN pixels are outside.
         """
         uv = check_uv(uv_px)
         with np.errstate(invalid="ignore"):
-            inside = (
+            return (
                 (uv[:, 0] >= -0.5)
                 & (uv[:, 0] <= self.width - 0.5)
                 & (uv[:, 1] >= -0.5)
                 & (uv[:, 1] <= self.height - 0.5)
             )
+
+    def valid_pixel_mask(self, uv_px: np.ndarray, exact: bool = False) -> np.ndarray:
+        """Raw pixels (N, 2) inside the image whose ray lies in the valid field, (N,) bool.
+
+        In ``[-0.5, width - 0.5] x [-0.5, height - 0.5]`` (:meth:`inside_image`) and
+        :meth:`unproject` gives a ray within :meth:`valid_alpha_rad` (the front half
+        for the sphere mapping without a fold, :meth:`pixel_hemisphere` with one).
+        """
+        uv = check_uv(uv_px)
+        inside = self.inside_image(uv)
         out = np.zeros(len(uv), bool)
         if inside.any():
             sub = uv[inside]

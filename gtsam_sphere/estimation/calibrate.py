@@ -2419,13 +2419,7 @@ def fold_off_sensor(camera, n_azimuths: int = 72) -> bool:
     uv = camera.project(rays, valid_only=False)
     if not np.all(np.isfinite(uv)):
         return False
-    inside = (
-        (uv[:, 0] >= -0.5)
-        & (uv[:, 0] <= camera.width - 0.5)
-        & (uv[:, 1] >= -0.5)
-        & (uv[:, 1] <= camera.height - 0.5)
-    )
-    return not bool(inside.any())
+    return not bool(camera.inside_image(uv).any())
 
 
 def distrust_reasons(

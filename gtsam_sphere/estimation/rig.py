@@ -51,7 +51,13 @@ from ..core.lie import rotation_angle as rotation_angle  # re-exported
 from ..core.robust import MEDIAN_NORM_3D, Loss, robust_weight
 from ..io.calibration import Calibration, RigCalibration
 from ..io.dataset import Dataset, DatasetError, RigDataset, read_json, split_rig
-from .calibrate import LOST_TO_OUTLIERS_REASON, CalibrationOptions, Distrust, calibrate
+from .calibrate import (
+    LOST_TO_OUTLIERS_REASON,
+    CalibrationOptions,
+    Distrust,
+    calibrate,
+    targets_extent,
+)
 from .diagnose import ProblemCode, image_groups
 from .optimize import OptimizerOptions
 from .rig_joint import (
@@ -552,8 +558,6 @@ def _seed_on_approximate_targets(
     -------
     Calibration
     """
-    from .calibrate import targets_extent
-
     free = np.isnan(dataset.target_sigma)
     extent = targets_extent(dataset.target_xyz[np.unique(dataset.obs_target)])
     if not free.any() or not extent > 0:

@@ -683,16 +683,11 @@ def adjust_rig_jointly(
         sigma,
     )
     start_sigma = start_sigma_px(calibs, ids)
-    n_joint_obs = {
-        cid: int(np.sum(~undetermined[[t_index[tg] for tg in obs_of[cid]["target"]]] & posed[cid]))
-        for cid in ids
-    }
     reselect_terms = {
         cid: terms
         for cid, terms in (reselect_terms or {}).items()
         if calibs[cid].camera.radial is not None
         and not (fixed_intrinsics and cid in fixed_intrinsics)
-        and n_joint_obs[cid] >= RESELECT_OBS_PER_TERM * (3 + len(terms[0]) + len(terms[1]))
     }
     joint_camera = {cid: calibs[cid].camera for cid in ids}
     for c, cid in enumerate(ids):
@@ -854,6 +849,11 @@ def adjust_rig_jointly(
         return float(np.sqrt(np.mean(r[keep] ** 2))) if keep.any() else float("nan")
 
     result = robust_stages(values)
+    reselect_terms = {
+        cid: terms
+        for cid, terms in reselect_terms.items()
+        if len(problems[cid].uv_px) >= RESELECT_OBS_PER_TERM * (3 + len(terms[0]) + len(terms[1]))
+    }
     if reselect_terms:
         # the full term set, adjusted once at the scales just settled (re-estimated
         # with terms the data may not support, a camera's scale fell to the floor or
