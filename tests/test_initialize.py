@@ -623,6 +623,29 @@ def test_another_warp_replaces_the_lens_only_with_a_clear_gain(monkeypatch):
     )
     assert swapped[5].warp_w == pytest.approx(-1.0) and swapped[3].sum() == n_kept + margin
     assert others[0] is posed and all(o is not swapped for o in others)
+    # a warp that explains the data (85 %), then one that falls away from it by the margin:
+    # the rest are not tried (zoo seed 10 case 05: 3 s of 9 s, the same lens)
+    tried = []
+    gains.update({-1.6: 250, -1.0: 250 - margin - 1, -0.5: 300})
+    monkeypatch.setattr(
+        ini, "_final_refit", lambda *args: tried.append(round(args[2].warp_w, 1)) or args[-2]
+    )
+    peak, others = ini._other_warps(
+        problem, np.arange(10), 4.0, np.arange(10), 6, posed, lines.append
+    )
+    assert tried == [-1.6, -1.0], lines
+    assert peak[5].warp_w == pytest.approx(-1.6) and any("not tried" in ln for ln in lines)
+    # falling by less than the margin, or below the 80 % that explain the data: on
+    tried.clear()
+    gains.update({w: 250 for w in ini._OTHER_WARPS})
+    gains[-1.0] = 250 - margin
+    ini._other_warps(problem, np.arange(10), 4.0, np.arange(10), 6, posed, lines.append)
+    assert tried == list(ini._OTHER_WARPS)
+    tried.clear()
+    gains.update({w: 0 for w in ini._OTHER_WARPS})
+    gains[-1.6] = 150
+    ini._other_warps(problem, np.arange(10), 4.0, np.arange(10), 6, posed, lines.append)
+    assert tried == list(ini._OTHER_WARPS)
 
 
 def _stress_options(**kw):
