@@ -685,20 +685,20 @@ def _focal_zoom(problem, images, seeds, hyp, thr_px):
     return replace(hyp, f_px=np.exp(xs[k])), float(cs[k])
 
 
-def _pp_search(problem, images, seeds, hyp, thr_px, size, quick_images, quick_seeds, polish):
+def _pp_search(problem, images, seeds, hyp, thr_px, size, quick_images, quick_seeds):
     """Principal point by grid search around ``hyp``'s.
 
     Poses absorb most of a principal point error (as a rotation), so the linear refit
     alone hardly moves it; the pixel cost of the best pose still tells. Offsets up to
     12 % of the image size in 3 % steps are scored with P3P poses alone on
     ``quick_images``; the three best
-    (and the start) with refined poses; then, with ``polish``, 1 % steps around the
+    (and the start) with refined poses; then 1 % steps around the
     winner (8 more candidates with refined poses: the dearest part of the search).
     The refit that follows (:func:`_refit`) moves the principal point continuously, but
     from where it starts: seed 2 case 05 of the zoo (a 150 deg pinhole with strong
     Brown terms) lost a third of its consistent observations without the 1 % step.
-    The caller polishes the best hypothesis (and a folded one, which is not refitted);
-    the second refit's own refit moves its principal point anyway.
+    The caller searches for the best hypothesis and a folded one (which is not
+    refitted); the second refit's own refit moves its principal point anyway.
 
     Returns ``(hypothesis, cost)`` (pixel MSAC cost with refined poses, px^2).
     """
@@ -713,8 +713,6 @@ def _pp_search(problem, images, seeds, hyp, thr_px, size, quick_images, quick_se
     scored = problem.costs(candidates, images, seeds, thr_px, 300, True, keep=1)
     k = int(np.argmin(scored))  # the first of equal costs
     best, best_cost = candidates[k], float(scored[k])
-    if not polish:
-        return best, best_cost
     return _pp_polish(problem, images, seeds, best, best_cost, thr_px, size)
 
 
@@ -1147,8 +1145,11 @@ def initialize_poses(
             c_0 = problem.cost(scoring, seeds, h_0, thr, 300, True)
             if c_0 < c_p:
                 h_p, c_p = h_0, c_0
-        if h_p is hyp:
-            polish = k == 0 or hyp.folded
+        # the second refit searches no grid either unless its lens folds (a folded lens
+        # is not refitted): the refit moves the principal point anyway, and the grid
+        # changed no result of zoo seed 0 or stress seed 227 (--defects) but cost up to
+        # 5 s of 10 (stress 227 s23, a 217 deg FOV board)
+        if h_p is hyp and (k == 0 or hyp.folded):
             h_p, c_p = _pp_search(
                 problem,
                 scoring,
@@ -1158,7 +1159,6 @@ def initialize_poses(
                 (width, height),
                 coarse_images,
                 coarse_seeds,
-                polish,
             )
         if h_p is not hyp:
             say(f"principal point: {h_p.describe()} (cost {c_p / thr**2:.4g})")
