@@ -297,17 +297,6 @@ def adjust(
                 progress(f"{label}stage 1 without {n_out} observations beyond 5 sigma")
             result = _optimize_subset(sub, start, optimizer, progress, label)
             sub = None
-        elif sub is not None:
-            # least squares on every observation, blunders included, crawls when it
-            # will lose to the start without them (stress seed 227 s20, 5 % blunders:
-            # 73 iterations, 0.9 s of 4.7); the start with every observation won in
-            # at most 11 iterations over the 107 first stages of zoo seed 0 and stress
-            # seed 227 (--defects) that had both
-            capped = replace(
-                optimizer,
-                max_iterations=min(optimizer.max_iterations, STAGE_ONE_ALL_MAX_ITERATIONS),
-            )
-            result = optimize(graph, start, capped, ordering, progress, label)
         else:
             result = optimize(graph, start, optimizer, ordering, progress, label)
         if sub is not None:
@@ -383,9 +372,6 @@ def adjust(
 
 #: :func:`_truncated_costs` caps each squared residual at this many (common) sigmas
 STAGE_ONE_CAP = 3.0
-#: iterations of the first stage's least squares on every observation when it has a rival
-#: start without the observations RANSAC rejected (:func:`adjust`)
-STAGE_ONE_ALL_MAX_ITERATIONS = 25
 
 
 def _truncated_costs(problem: BundleProblem, candidates: list[gtsam.Values]) -> list[float]:
