@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from gtsam_sphere.core.least_squares import (
     Damping,
@@ -163,3 +164,58 @@ def test_singular_systems_of_a_batch_are_found_one_by_one():
     delta, singular = _solve_damped(H, g, np.array([0.0, 1.0]), np.ones((2, 2)))
     assert not singular.any()
     np.testing.assert_allclose((H[1] + np.eye(2)) @ delta[1], -g[1])
+
+
+def _arrow_system(rng, n_shared, block, m, batch):
+    """Random symmetric positive definite normal equations of arrow structure."""
+    n_p = n_shared + m * block
+    H = np.zeros((batch, n_p, n_p))
+    for b in range(batch):
+        J = np.zeros((3 * n_p, n_p))
+        for k in range(m):
+            rows = slice(3 * block * k, 3 * block * (k + 1))
+            J[rows, :n_shared] = rng.normal(size=(3 * block, n_shared))
+            J[rows, n_shared + k * block : n_shared + (k + 1) * block] = rng.normal(
+                size=(3 * block, block)
+            )
+        H[b] = J.T @ J
+    g = rng.normal(size=(batch, n_p))
+    return H, g
+
+
+@pytest.mark.parametrize("n_shared", [0, 2, 6])
+def test_the_arrow_solve_is_the_dense_solve(n_shared):
+    """``arrow_solve`` eliminates the blocks: the same damped steps as the dense solve,
+    per problem of a batch, with their own damping."""
+    from gtsam_sphere.core.least_squares import _solve_damped, arrow_solve
+
+    rng = np.random.default_rng(3)
+    H, g = _arrow_system(rng, n_shared, 6, 5, 3)
+    lam = np.array([0.0, 1e-3, 10.0])
+    s = np.abs(rng.normal(size=g.shape)) + 0.5
+    dense, sing_dense = _solve_damped(H, g, lam, s)
+    arrow, sing_arrow = arrow_solve(n_shared, 6)(H, g, lam, s)
+    assert not sing_dense.any() and not sing_arrow.any()
+    np.testing.assert_allclose(arrow, dense, rtol=1e-8, atol=1e-10)
+    # H untouched (the damping is added to copies)
+    H2, _ = _arrow_system(np.random.default_rng(3), n_shared, 6, 5, 3)
+    np.testing.assert_array_equal(H, H2)
+
+
+def test_the_arrow_solve_flags_a_singular_block_and_a_bad_layout():
+    """A block with no information and no damping is singular (its step left at zero,
+    the other problems of the batch solved); a size that is not shared + blocks raises."""
+    from gtsam_sphere.core.least_squares import _solve_damped, arrow_solve
+
+    rng = np.random.default_rng(4)
+    H, g = _arrow_system(rng, 3, 4, 3, 2)
+    H[0, 7:11, :] = 0.0
+    H[0, :, 7:11] = 0.0
+    lam = np.zeros(2)
+    s = np.ones_like(g)
+    delta, singular = arrow_solve(3, 4)(H, g, lam, s)
+    assert singular.tolist() == [True, False]
+    np.testing.assert_array_equal(delta[0], 0.0)
+    np.testing.assert_allclose(delta[1], _solve_damped(H[1:], g[1:], lam[1:], s[1:])[0][0])
+    with pytest.raises(ValueError, match="not 2 shared unknowns plus blocks of 4"):
+        arrow_solve(2, 4)(H, g, lam, s)

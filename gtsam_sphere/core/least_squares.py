@@ -32,6 +32,7 @@ __all__ = [
     "LMBatchResult",
     "LMResult",
     "LMStatus",
+    "arrow_solve",
     "levenberg_marquardt",
     "levenberg_marquardt_batch",
 ]
@@ -199,6 +200,69 @@ def _solve_damped(H: np.ndarray, g: np.ndarray, lam: np.ndarray, s: np.ndarray):
         return delta, singular
 
 
+def arrow_solve(n_shared: int, block: int) -> Callable[..., tuple[np.ndarray, np.ndarray]]:
+    """A damped solve (the ``solve`` of :func:`levenberg_marquardt_batch`) for normal
+    equations of "arrow" structure: ``n_shared`` unknowns coupled with everything (e.g.
+    a lens), then blocks of ``block`` unknowns coupled with the shared ones only (e.g.
+    one pose per image; ``P = n_shared + m block``).
+
+    The blocks are eliminated (the Schur complement on the shared unknowns, ``m``
+    inverses of ``block x block``), so a step costs ``O(m)`` instead of the ``O(P^3)``
+    of a dense solve: a refit of the lens and the poses of 300 images solves 6 + 1,800
+    unknowns in a few milliseconds.
+
+    Parameters
+    ----------
+    n_shared : int
+        Unknowns first in the layout, coupled with every block.
+    block : int
+        Size of each block after them.
+
+    Returns
+    -------
+    callable
+        ``solve(H (B, P, P), g (B, P), lam (B,), s (B, P)) -> (delta (B, P), singular
+        (B,) bool)``: the steps ``(H + lam diag(s)) delta = -g``; an entry whose damped
+        system is singular is flagged and its step left at zero.
+    """
+    a, q = int(n_shared), int(block)
+
+    def solve(H, g, lam, s):
+        n_b, n_p = g.shape
+        m = (n_p - a) // q
+        if a + m * q != n_p:
+            raise ValueError(
+                f"normal equations of size {n_p} are not {a} shared unknowns plus blocks of {q}"
+            )
+        idx = a + np.arange(m)[:, None] * q + np.arange(q)  # (m, q)
+        delta = np.zeros_like(g)
+        singular = np.zeros(n_b, bool)
+        for b in range(n_b):
+            d = lam[b] * s[b]
+            C = H[b][idx[:, :, None], idx[:, None, :]]  # (m, q, q)
+            C[:, np.arange(q), np.arange(q)] += d[idx]
+            E = H[b, :a, a:].reshape(a, m, q).transpose(1, 0, 2)  # (m, a, q)
+            g_p = g[b, a:].reshape(m, q)
+            try:
+                C_inv = np.linalg.inv(C)
+                EC = E @ C_inv  # (m, a, q)
+                S = H[b, :a, :a] + np.diag(d[:a]) - np.einsum("kij,klj->il", EC, E)
+                rhs = -g[b, :a] + np.einsum("kij,kj->i", EC, g_p)
+                d_s = np.linalg.solve(S, rhs) if a else np.zeros(0)
+            except np.linalg.LinAlgError:
+                singular[b] = True
+                continue
+            d_p = -np.einsum("kij,kj->ki", C_inv, g_p + np.einsum("kji,j->ki", E, d_s))
+            delta[b, :a] = d_s
+            delta[b, a:] = d_p.ravel()
+            if not np.all(np.isfinite(delta[b])):
+                delta[b] = 0.0
+                singular[b] = True
+        return delta, singular
+
+    return solve
+
+
 def levenberg_marquardt_batch(
     x0: Any,
     cost: Callable[[Any], np.ndarray],
@@ -211,6 +275,7 @@ def levenberg_marquardt_batch(
     damping: Damping = Damping(),
     max_iterations: int = 100,
     cost0: np.ndarray | None = None,
+    solve: Callable[..., tuple[np.ndarray, np.ndarray]] | None = None,
 ) -> LMBatchResult:
     """Levenberg-Marquardt on ``B`` independent problems at once (the package's one loop).
 
@@ -248,6 +313,11 @@ def levenberg_marquardt_batch(
         Linearisations at most, per problem.
     cost0 : (B,) array, optional
         ``cost(x0)`` when the caller has it already.
+    solve : callable, optional
+        ``solve(H (B', P, P), g (B', P), lam (B',), s (B', P)) -> (delta (B', P),
+        singular (B',) bool)``: the damped steps ``(H + lam diag(s)) delta = -g``, for
+        normal equations with a structure a dense solve ignores (e.g.
+        :func:`arrow_solve`); default a dense solve.
 
     Returns
     -------
@@ -295,7 +365,7 @@ def levenberg_marquardt_batch(
         if not act.size:
             continue
         tries[act] += 1
-        delta, singular = _solve_damped(H[act], g[act], lam[act], s[act])
+        delta, singular = (solve or _solve_damped)(H[act], g[act], lam[act], s[act])
         lam[act[singular]] *= damping.increase_singular
         ok = ~singular
         act, delta = act[ok], delta[ok]
@@ -349,6 +419,7 @@ def levenberg_marquardt(
     damping: Damping = Damping(),
     max_iterations: int = 100,
     cost0: float | None = None,
+    solve: Callable[..., tuple[np.ndarray, np.ndarray]] | None = None,
 ) -> LMResult:
     """Minimise ``cost(x)`` by Levenberg-Marquardt on the normal equations.
 
@@ -383,6 +454,8 @@ def levenberg_marquardt(
         Linearisations at most.
     cost0 : float, optional
         ``cost(x0)`` when the caller has it already.
+    solve : callable, optional
+        The damped solve, batched as in :func:`levenberg_marquardt_batch` (B = 1).
 
     Returns
     -------
@@ -408,6 +481,7 @@ def levenberg_marquardt(
         damping=damping,
         max_iterations=max_iterations,
         cost0=None if cost0 is None else np.array([cost0], dtype=float),
+        solve=solve,
     )
     return LMResult(
         fit.x[0], float(fit.cost[0]), int(fit.iterations[0]), fit.status[0], float(fit.damping[0])

@@ -70,7 +70,10 @@ import numpy as np
 from ..core.camera import radial_warp
 from ..core.errors import InitialisationError
 from ..core.geometry import fit_rigid
+from ..core.least_squares import Damping, arrow_solve, levenberg_marquardt
+from ..core.lie import nearest_rotation, skew, so3_exp_batch, so3_left_jacobian_batch
 from ..core.p3p import ransac_poses
+from ..core.robust import Loss, robust_weight
 
 logger = logging.getLogger(__name__)
 
@@ -807,88 +810,98 @@ def _hypothesis_from_poly(b: np.ndarray, pp: np.ndarray, alpha_obs: np.ndarray, 
     return LensHypothesis("fitted", float(b[0]), np.asarray(pp, float), coeffs, a_max, warp_w)
 
 
-def _joint_refine(problem, images, hyp, rot, trans, mask, thr_px):
-    """Joint robust least squares of the principal point, an odd radial polynomial and
-    the poses of ``images`` on their ``mask``ed observations (pixel residuals, soft-L1
-    loss with scale ``thr_px``).
+#: the joint refit's LM (:func:`_joint_refine`): linearisations at most, and the
+#: relative cost decrease below which it has converged
+_REFIT_ITERATIONS = 40
+_REFIT_FTOL = 1e-8
 
-    A principal point error is mostly absorbed by the poses (a rotation), so the
-    intrinsics and the poses must move together; ``scipy.optimize.least_squares`` with
-    the block sparsity of the problem does that in a few dozen cheap evaluations.
 
-    Returns ``(hypothesis, rot, trans)`` or None when the fit is unusable.
+class _JointRefit:
+    """The joint refit's least-squares problem (:func:`_joint_refine`): the principal
+    point, an odd radial polynomial in ``hyp``'s warp and the poses of the posed
+    ``images``, on their ``mask``ed observations.
+
+    The unknowns ``x`` are ``(pp (2) px, b (_N_POLY) px, (w, t) (6) per image)``: the
+    pose of image ``k`` is ``exp(w_k) R0_k, t0_k + t_k`` around its start. Built by
+    :meth:`build` (None when too little is posed).
     """
-    from scipy.optimize import least_squares
-    from scipy.sparse import csr_matrix
 
-    from ..core.lie import nearest_rotation, skew, so3_exp_batch, so3_left_jacobian_batch
+    @classmethod
+    def build(cls, problem, images, hyp, rot, trans, mask, thr_px):
+        posed = [i for i in images if np.all(np.isfinite(rot[i]))]
+        rows = [problem.obs_of_image[i][mask[problem.obs_of_image[i]]] for i in posed]
+        keep = [k for k, r in enumerate(rows) if r.size >= 4]
+        posed = [posed[k] for k in keep]
+        rows = [rows[k] for k in keep]
+        n_obs = sum(r.size for r in rows)
+        if len(posed) < 2 or n_obs < 6 * (_N_POLY + 2):
+            return None
+        self = cls()
+        self.hyp, self.thr_px, self.posed = hyp, float(thr_px), posed
+        self.uv = np.concatenate([problem.uv[r] for r in rows])
+        self.pts = np.concatenate([problem.points[r] for r in rows])
+        self.owner = np.concatenate([np.full(r.size, k) for k, r in enumerate(rows)])
+        self.starts = np.concatenate([[0], np.cumsum([r.size for r in rows])[:-1]])
+        self.R0 = np.stack([rot[i] for i in posed])
+        self.t0 = np.stack([trans[i] for i in posed])
+        p0 = np.einsum("nij,nj->ni", self.R0[self.owner], self.pts) + self.t0[self.owner]
+        self.alpha0 = np.arctan2(np.hypot(p0[:, 0], p0[:, 1]), p0[:, 2])
+        grid = np.linspace(0.0, float(np.max(self.alpha0)), 64)[1:]
+        r_grid = hyp.radius_px(grid)
+        ok = np.isfinite(r_grid)
+        if ok.sum() < _N_POLY + 2:
+            return None
+        b0 = _poly_in_warp(grid[ok], r_grid[ok], hyp.warp_w)
+        self.n_cam = len(posed)
+        self.n_lens = 2 + _N_POLY
+        self.x0 = np.concatenate([hyp.principal_point_px, b0, np.zeros(6 * self.n_cam)])
+        self.pose_idx = self.n_lens + 6 * np.arange(self.n_cam)[:, None] + np.arange(6)
+        return self
 
-    posed = [i for i in images if np.all(np.isfinite(rot[i]))]
-    rows = [problem.obs_of_image[i][mask[problem.obs_of_image[i]]] for i in posed]
-    keep = [k for k, r in enumerate(rows) if r.size >= 4]
-    posed = [posed[k] for k in keep]
-    rows = [rows[k] for k in keep]
-    n_obs = sum(r.size for r in rows)
-    if len(posed) < 2 or n_obs < 6 * (_N_POLY + 2):
-        return None
-    uv = np.concatenate([problem.uv[r] for r in rows])
-    pts = np.concatenate([problem.points[r] for r in rows])
-    owner = np.concatenate([np.full(r.size, k) for k, r in enumerate(rows)])
-    R0 = np.stack([rot[i] for i in posed])
-    t0 = np.stack([trans[i] for i in posed])
-    p0 = np.einsum("nij,nj->ni", R0[owner], pts) + t0[owner]
-    alpha0 = np.arctan2(np.hypot(p0[:, 0], p0[:, 1]), p0[:, 2])
-    grid = np.linspace(0.0, float(np.max(alpha0)), 64)[1:]
-    r_grid = hyp.radius_px(grid)
-    ok = np.isfinite(r_grid)
-    if ok.sum() < _N_POLY + 2:
-        return None
-    b0 = _poly_in_warp(grid[ok], r_grid[ok], hyp.warp_w)
-    n_cam = len(posed)
-    x0 = np.concatenate([hyp.principal_point_px, b0, np.zeros(6 * n_cam)])
+    def poses(self, x):
+        """``cam_from_world`` (n_cam, 3, 3), (n_cam, 3) of the posed images at ``x``."""
+        d = x[self.n_lens :].reshape(self.n_cam, 6)
+        return so3_exp_batch(d[:, :3]) @ self.R0, self.t0 + d[:, 3:]
 
-    def poses(x):
-        d = x[2 + _N_POLY :].reshape(n_cam, 6)
-        return so3_exp_batch(d[:, :3]) @ R0, t0 + d[:, 3:]
-
-    def geometry(x):
+    def _geometry(self, x):
         """Camera-frame points, their radius off the axis, incidence and image radius."""
-        R, t = poses(x)
-        p = np.einsum("nij,nj->ni", R[owner], pts) + t[owner]
+        R, t = self.poses(x)
+        p = np.einsum("nij,nj->ni", R[self.owner], self.pts) + t[self.owner]
         s = np.hypot(p[:, 0], p[:, 1])
         alpha = np.arctan2(s, p[:, 2])
-        basis = _radial_basis(hyp.beta(alpha))
-        return p, s, alpha, basis, basis @ x[2 : 2 + _N_POLY]
+        basis = _radial_basis(self.hyp.beta(alpha))
+        return p, s, alpha, basis, basis @ x[2 : self.n_lens]
 
-    def residuals(x):
-        p, s, _, _, r = geometry(x)
+    def _residuals(self, x, p, s, r):
         scale = r / np.maximum(s, 1e-12)
-        res = x[:2] + scale[:, None] * p[:, :2] - uv
-        return np.nan_to_num(res, nan=1e6).ravel()
+        return np.nan_to_num(x[:2] + scale[:, None] * p[:, :2] - self.uv, nan=1e6)
 
-    k_warp = float(np.exp(hyp.warp_w))
-    n_x = x0.size
-    rows = np.repeat(np.arange(2 * n_obs), 2 + _N_POLY + 6)
-    pose_cols = 2 + _N_POLY + 6 * owner[:, None] + np.arange(6)  # (n_obs, 6)
-    cols = np.concatenate(
-        [np.broadcast_to(np.arange(2 + _N_POLY), (n_obs, 2 + _N_POLY)), pose_cols], axis=1
-    )
-    cols = np.repeat(cols, 2, axis=0).ravel()
+    def residuals(self, x):
+        """(n_obs, 2) pixel residuals at ``x``; 1e6 px where the projection is undefined."""
+        p, s, _, _, r = self._geometry(x)
+        return self._residuals(x, p, s, r)
 
-    def jacobian(x):
-        """Analytic d residuals / d (pp, b, (w, t) per camera): (2 n_obs, n_x), sparse.
+    def cost(self, x):
+        """Huber cost of the residual norms whitened by ``thr_px`` (threshold 1)."""
+        e = np.linalg.norm(self.residuals(x), axis=1) / self.thr_px
+        return float(robust_weight(e, Loss.HUBER, 1.0)[1].sum())
 
-        ``res = pp + r(alpha) p_xy / s`` with ``p = exp(w) R0 X + t``,
-        ``alpha = atan2(s, z)``, ``s = |p_xy|``, ``r = basis(beta(alpha)) @ b``.
-        """
-        p, s, alpha, basis, r = geometry(x)
+    def jacobian(self, x):
+        """``(res (n_obs, 2), J (n_obs, 2, n_lens + 6))``: each residual
+        ``res = pp + r(alpha) p_xy / s`` and its derivatives with respect to
+        ``(pp, b)`` and its own image's ``(w, t)``, with ``p = exp(w) R0 X + t``,
+        ``alpha = atan2(s, z)``, ``s = |p_xy|``, ``r = basis(beta(alpha)) @ b``."""
+        n_lens = self.n_lens
+        p, s, alpha, basis, r = self._geometry(x)
+        res = self._residuals(x, p, s, r)
         s_safe = np.maximum(s, 1e-12)
-        beta = hyp.beta(alpha)
+        beta = self.hyp.beta(alpha)
         dbasis = np.column_stack(
             [(2 * k + 1) * (beta / _ALPHA0_RAD) ** (2 * k) for k in range(_N_POLY)]
         )
+        k_warp = float(np.exp(self.hyp.warp_w))
         dbeta = 1.0 / (np.cos(alpha) ** 2 + (k_warp * np.sin(alpha)) ** 2)
-        dr_dalpha = (dbasis @ x[2 : 2 + _N_POLY]) * dbeta
+        dr_dalpha = (dbasis @ x[2:n_lens]) * dbeta
         rho2 = s_safe**2 + p[:, 2] ** 2
         u = p[:, :2] / s_safe[:, None]  # unit direction in the image
         q = r / s_safe
@@ -899,36 +912,74 @@ def _joint_refine(problem, images, hyp, rot, trans, mask, thr_px):
         dres_dp = p[:, :2, None] * dq_dp[:, None, :]  # (n, 2, 3)
         dres_dp[:, 0, 0] += q
         dres_dp[:, 1, 1] += q
-        d = x[2 + _N_POLY :].reshape(n_cam, 6)
-        y = p - t0[owner] - d[owner, 3:]  # exp(w) R0 X
-        dp_dw = -skew(y) @ so3_left_jacobian_batch(d[:, :3])[owner]
-        block = np.empty((n_obs, 2, 2 + _N_POLY + 6))
-        block[:, :, :2] = np.eye(2)
-        block[:, :, 2 : 2 + _N_POLY] = basis[:, None, :] * u[:, :, None]
-        block[:, :, 2 + _N_POLY : 5 + _N_POLY] = dres_dp @ dp_dw
-        block[:, :, 5 + _N_POLY :] = dres_dp
-        block[~np.isfinite(block)] = 0.0
-        return csr_matrix((block.ravel(), (rows, cols)), shape=(2 * n_obs, n_x))
+        d = x[n_lens:].reshape(self.n_cam, 6)
+        y = p - self.t0[self.owner] - d[self.owner, 3:]  # exp(w) R0 X
+        dp_dw = -skew(y) @ so3_left_jacobian_batch(d[:, :3])[self.owner]
+        J = np.empty((res.shape[0], 2, n_lens + 6))
+        J[:, :, :2] = np.eye(2)
+        J[:, :, 2:n_lens] = basis[:, None, :] * u[:, :, None]
+        J[:, :, n_lens : n_lens + 3] = dres_dp @ dp_dw
+        J[:, :, n_lens + 3 :] = dres_dp
+        J[~np.isfinite(J)] = 0.0
+        return res, J
 
-    try:
-        sol = least_squares(
-            residuals,
-            x0,
-            jac=jacobian,
-            loss="soft_l1",
-            f_scale=thr_px,
-            x_scale="jac",
-            max_nfev=40,
-            method="trf",
-        )
-    except (ValueError, np.linalg.LinAlgError):
+    def linearize(self, x):
+        """Gauss-Newton ``(H (P, P), g (P,))`` of :meth:`cost` (Huber IRLS weights):
+        the lens first, then one 6x6 block per image, coupled with the lens only."""
+        n_lens, n_x = self.n_lens, self.x0.size
+        res, J = self.jacobian(x)
+        w, _ = robust_weight(np.linalg.norm(res, axis=1) / self.thr_px, Loss.HUBER, 1.0)
+        Jw = J * (w / self.thr_px**2)[:, None, None]
+        per_image = np.add.reduceat(np.einsum("nri,nrj->nij", Jw, J), self.starts, axis=0)
+        g_obs = np.add.reduceat(np.einsum("nri,nr->ni", Jw, res), self.starts, axis=0)
+        lens, pose = np.arange(n_lens), self.pose_idx
+        H = np.zeros((n_x, n_x))
+        H[:n_lens, :n_lens] = per_image[:, :n_lens, :n_lens].sum(axis=0)
+        H[pose[:, :, None], pose[:, None, :]] = per_image[:, n_lens:, n_lens:]
+        cross = per_image[:, :n_lens, n_lens:]  # (n_cam, n_lens, 6)
+        H[lens[None, :, None], pose[:, None, :]] = cross
+        H[pose[:, :, None], lens[None, None, :]] = cross.transpose(0, 2, 1)
+        g = np.concatenate([g_obs[:, :n_lens].sum(axis=0), g_obs[:, n_lens:].ravel()])
+        return H, g
+
+
+def _joint_refine(problem, images, hyp, rot, trans, mask, thr_px):
+    """Joint robust least squares of the principal point, an odd radial polynomial and
+    the poses of ``images`` on their ``mask``ed observations (pixel residuals, Huber
+    loss on each observation's residual norm, threshold ``thr_px``; :class:`_JointRefit`).
+
+    A principal point error is mostly absorbed by the poses (a rotation), so the
+    intrinsics and the poses must move together. The package's LM
+    (:func:`~gtsam_sphere.core.least_squares.levenberg_marquardt`) solves it from the
+    analytic Jacobian with the poses eliminated
+    (:func:`~gtsam_sphere.core.least_squares.arrow_solve`: each residual depends on the
+    lens and one pose). Until session 26 this was ``scipy.optimize.least_squares``
+    (trf, LSMR on the sparse Jacobian), 0.1-0.3 s a call, the dearest part of a small
+    set's initialisation (stress 228 s20, 8 images: 1.3 of 5.3 s).
+
+    Returns ``(hypothesis, rot, trans)`` or None when the fit is unusable.
+    """
+    refit = _JointRefit.build(problem, images, hyp, rot, trans, mask, thr_px)
+    if refit is None:
         return None
-    new = _hypothesis_from_poly(sol.x[2 : 2 + _N_POLY], sol.x[:2], alpha0, hyp.warp_w)
+    fit = levenberg_marquardt(
+        refit.x0,
+        refit.cost,
+        refit.linearize,
+        converged=lambda c0, c1, _d: c0 - c1 <= _REFIT_FTOL * c0,
+        damping=Damping(max_tries=12),
+        max_iterations=_REFIT_ITERATIONS,
+        solve=arrow_solve(refit.n_lens, 6),
+    )
+    x = fit.x
+    if not np.all(np.isfinite(x)):
+        return None
+    new = _hypothesis_from_poly(x[2 : refit.n_lens], x[:2], refit.alpha0, hyp.warp_w)
     if new is None:
         return None
-    R, t = poses(sol.x)
+    R, t = refit.poses(x)
     rot, trans = rot.copy(), trans.copy()
-    for k, i in enumerate(posed):
+    for k, i in enumerate(refit.posed):
         rot[i], trans[i] = nearest_rotation(R[k]), t[k]
     return new, rot, trans
 
