@@ -541,17 +541,38 @@ def test_a_fold_is_settled_only_where_the_joint_mapping_does_not_fold():
 
 @pytest.mark.slow  # a two-camera rig of 6 frames, ~9 s
 def test_a_split_camera_whose_own_mapping_folds_is_settled_by_the_joint_graph():
-    """Free mixed rig, 6 frames, seed 2: the pinhole's largest group (3 of its images)
-    alone gives a radial mapping that folds at 3.3 deg inside its 53.5 deg; the joint
-    graph's mapping does not fold over the field it observes there: trusted, the own
-    reason kept as a warning, ``cam_from_rig`` within 3 reported sigma of the truth."""
-    sim = simulate_rig(RigOptions(rig="mixed", n_frames=6, seed=2))
+    """Free mixed rig, 6 frames, seed 7: the pinhole's largest group (2 of its 6 images)
+    alone gives a radial mapping that folds inside its field; the joint graph's mapping
+    does not fold over the field it observes there: trusted, the own reason kept as a
+    warning, ``cam_from_rig`` within 3 reported sigma of the truth. (Seed 2 was this
+    case until session 26; with the initialisation's joint refit on the package's LM
+    its largest group ends singular and unconverged instead, and is settled too.)"""
+    sim = simulate_rig(RigOptions(rig="mixed", n_frames=6, seed=7))
     calib = calibrate_rig(parse_rig_dataset(_free(sim.dataset)))
     assert calib.statistics["trusted"], calib.statistics["distrust"]
     own = calib.statistics["cameras"]["pinhole"]
     assert own["n_images_joint_only"] >= 1
     assert "fold" in own["distrust_codes"]
     assert any("does not fold inside" in w for w in calib.statistics["warnings"])
+    _within_three_sigma(calib, sim.cameras[1])
+
+
+@pytest.mark.slow  # a free mixed rig of 6 frames, ~15 s
+def test_a_seeded_cameras_unstable_knn_loop_is_settled_by_the_joint_graph():
+    """Free mixed rig, 6 frames, seed 5: no group of the pinhole's images calibrates
+    alone, so it is seeded on all of them with the targets at their approximate
+    coordinates; that seed fits them exactly, and its kNN loop on residuals of 0.02 px
+    did not become stable. That says nothing of the lens: the joint adjustment settles
+    it (a warning names it), trusted, ``cam_from_rig`` within 3 reported sigma."""
+    sim = simulate_rig(RigOptions(rig="mixed", n_frames=6, seed=5))
+    calib = calibrate_rig(parse_rig_dataset(_free(sim.dataset)))
+    own = calib.statistics["cameras"]["pinhole"]
+    assert "seeded_on_approximate_targets" in own
+    assert "knn-unstable" in own["distrust_codes"]
+    assert calib.statistics["trusted"], calib.statistics["distrust"]
+    assert any(
+        "pinhole" in w and "did not become stable" in w for w in calib.statistics["warnings"]
+    )
     _within_three_sigma(calib, sim.cameras[1])
 
 
