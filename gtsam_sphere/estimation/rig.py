@@ -53,6 +53,7 @@ from ..io.calibration import Calibration, RigCalibration
 from ..io.dataset import Dataset, DatasetError, RigDataset, read_json, split_rig
 from .calibrate import (
     LOST_TO_OUTLIERS_REASON,
+    MIN_SIGMA_PX,
     CalibrationOptions,
     Distrust,
     calibrate,
@@ -732,14 +733,21 @@ class _HeldForTheJoint(logging.Filter):
 #: the camera's observations span in the joint graph (:func:`_joint_unfolds`)
 JOINT_SETTLES = (str(Distrust.NOT_CONVERGED), str(Distrust.SINGULAR), str(Distrust.FOLD))
 
-#: reasons the joint adjustment also settles for a camera seeded on approximate targets
-#: (:func:`_seed_on_approximate_targets`): the seed fits its targets exactly (its robust
-#: scale at the floor), so its kNN loop learns from residuals of a few hundredths of a
-#: pixel, and whether that loop became stable says nothing of the lens (free mixed rig,
-#: 6 frames, seed 5: the pinhole seeded at 0.021 px RMS, its loop unstable or not with
-#: the initialisation's solver, the joint result the same: cam_from_rig 0.11 deg and
-#: 2.7 mm off, at 1.0 and 1.4 reported sigma)
-SEED_SETTLES = (str(Distrust.KNN_UNSTABLE),)
+#: reasons the joint adjustment also settles for a camera whose own adjustment (on part
+#: of its data: its largest group of images, or a seed on approximate targets,
+#: :func:`_seed_on_approximate_targets`) fitted its observations exactly, its robust
+#: scale at the floor (``calibrate.MIN_SIGMA_PX``): its kNN loop then learned from
+#: residuals of hundredths of a pixel or less, and whether it became stable says nothing
+#: of the lens. Free mixed rig, 6 frames: seed 5 (seeded, 0.021 px RMS) was refused on
+#: it once the initialisation's refit changed, and seed 11 (largest group of 4 images,
+#: 2e-13 px) always; their joint cam_from_rig are 0.11 deg / 2.7 mm and 0.07 deg /
+#: 1.5 mm off, within 1.4 reported sigma
+EXACT_FIT_SETTLES = (str(Distrust.KNN_UNSTABLE),)
+
+
+def _fitted_exactly(statistics: dict) -> bool:
+    """The camera's own robust scale ended at the floor (``calibrate.MIN_SIGMA_PX``)."""
+    return float(statistics.get("sigma_px", np.inf)) <= MIN_SIGMA_PX * (1.0 + 1e-9)
 
 
 def _joint_unfolds(cid: str, jr) -> bool:
@@ -972,10 +980,8 @@ def assemble_rig(
         st = calibs[cid].statistics
         codes = st.get("distrust_codes", [None] * len(st.get("distrust", [])))
         for code, reason in zip(codes, st.get("distrust", [])):
-            seeded = "seeded_on_approximate_targets" in st
-            settles = (code in JOINT_SETTLES or (seeded and code in SEED_SETTLES)) and (
-                _joint_determines(cid, st, jr)
-            )
+            exact = code in EXACT_FIT_SETTLES and _fitted_exactly(st)
+            settles = (code in JOINT_SETTLES or exact) and _joint_determines(cid, st, jr)
             if settles and code == str(Distrust.FOLD):
                 settles = _joint_unfolds(cid, jr)
             if settles:
@@ -983,7 +989,12 @@ def assemble_rig(
                     f"; its jointly adjusted mapping does not fold inside the "
                     f"{jr.max_incidence_deg[cid]:.1f} deg the joint graph observes"
                     if code == str(Distrust.FOLD)
-                    else ""
+                    else (
+                        f"; alone it fitted its observations exactly (robust scale at the "
+                        f"{MIN_SIGMA_PX:g} px floor), so its kNN loop had nothing to learn"
+                        if exact
+                        else ""
+                    )
                 )
                 settled.append(
                     f"camera {cid!r}: its own adjustment on part of its data (its largest "
