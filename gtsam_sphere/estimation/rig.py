@@ -530,6 +530,7 @@ def _seed_on_approximate_targets(
     error: DegenerateGeometryError,
     say: Callable[[str], None],
     cid: str,
+    why: str | None = None,
 ) -> Calibration:
     """A rig camera's own calibration when even its largest group of images cannot be
     calibrated alone: every image, each free target a weighted control point at its
@@ -554,6 +555,9 @@ def _seed_on_approximate_targets(
         too, or when the dataset has no free target to seed with).
     cid : str
         The camera's id.
+    why : str, optional
+        Why the camera is seeded when its largest group did calibrate (default: that
+        group could not be calibrated, ``error``).
 
     Returns
     -------
@@ -565,7 +569,9 @@ def _seed_on_approximate_targets(
         raise error
     sigma = SEED_TARGET_SIGMA_FRACTION * extent
     say(
-        f"camera {cid}: even its largest group cannot be calibrated alone ({error}); "
+        f"camera {cid}: "
+        + (why or f"even its largest group cannot be calibrated alone ({error})")
+        + "; "
         f"seeding it on all {len(dataset.image_ids)} of its images with the free targets "
         f"held at their approximate coordinates (sigma {sigma:.4g} {dataset.units}); "
         "the joint adjustment frees them again"
@@ -646,6 +652,10 @@ def calibrate_rig(
 
     framed = {i for i, f in zip(rig.image_ids, rig.image_frame) if f}
     calibs: dict[str, Calibration] = {}
+    # cameras calibrated on their largest group whose result alone is not trusted (e.g.
+    # intrinsics undetermined, not converged), with the error that split them: reseeded
+    # when the joint adjustment from them does not converge
+    untrusted_groups: dict[str, DegenerateGeometryError] = {}
     failures: list[tuple[str, BaseException]] = []
     # a camera's targets seen once: its own adjustment leaves them out and warns, but
     # the joint graph takes them back and reports what it cannot determine itself
@@ -689,6 +699,8 @@ def calibrate_rig(
                     else:
                         calibs[cid].extra["joint_only_observations"] = rest
                         calibs[cid].statistics["n_images_joint_only"] = len(set(rest["image"]))
+                        if calibs[cid].statistics.get("distrust"):
+                            untrusted_groups[cid] = exc
             except (DatasetError, ValueError) as exc:  # bad or degenerate input of this camera
                 failures.append((cid, exc))
                 say(f"camera {cid}: calibration failed: {exc}")
@@ -702,7 +714,61 @@ def calibrate_rig(
             f"cannot be: {lines}"
         ) from failures[0][1]
 
-    return assemble_rig(rig, calibs, per_camera, say, joint, knn_rounds=knn_rounds)
+    result = assemble_rig(rig, calibs, per_camera, say, joint, knn_rounds=knn_rounds)
+    first = result.statistics.get("joint")
+    if not untrusted_groups or first is None:
+        return result
+    cams = result.statistics["cameras"]
+    if first["converged"] and all(
+        cams[cid].get("intrinsics_sigma_rig") is not None for cid in untrusted_groups
+    ):
+        return result
+    # the joint graph started from a doubtful lens (e.g. a largest group fitted exactly):
+    # once more, each such camera seeded on all its images
+    say(
+        "the joint rig adjustment did not converge or left the intrinsics undetermined, "
+        "starting from "
+        + ", ".join(f"camera {cid}'s largest group" for cid in untrusted_groups)
+        + " (not trusted alone): seeding it on all its images and adjusting again"
+    )
+    reseeded = dict(calibs)
+    if held is not None:
+        diagnose_log.addFilter(held)
+    try:
+        for cid, exc in untrusted_groups.items():
+
+            def prefixed(line: str, cid: str = cid) -> None:
+                say(f"[{cid}] {line}")
+
+            try:
+                reseeded[cid] = _seed_on_approximate_targets(
+                    datasets[cid],
+                    per_camera[cid],
+                    prefixed,
+                    exc,
+                    say,
+                    cid,
+                    why="its largest group is not trusted alone and the joint adjustment "
+                    "from it did not converge or determine its intrinsics",
+                )
+            except DegenerateGeometryError:
+                say(f"camera {cid}: cannot be seeded either; keeping its largest group")
+    finally:
+        if held is not None:
+            diagnose_log.removeFilter(held)
+    if all(reseeded[cid] is calibs[cid] for cid in untrusted_groups):
+        return result
+    second = assemble_rig(rig, reseeded, per_camera, say, joint, knn_rounds=knn_rounds)
+    if second.statistics["joint"]["converged"] and all(
+        second.statistics["cameras"][cid].get("intrinsics_sigma_rig") is not None
+        for cid in untrusted_groups
+    ):
+        return second
+    say(
+        "the joint rig adjustment from the seeds did not converge or determine them "
+        "either: the first kept"
+    )
+    return result
 
 
 class _HeldForTheJoint(logging.Filter):
