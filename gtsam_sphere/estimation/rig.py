@@ -671,9 +671,7 @@ def calibrate_rig(
                 f"{ds.n_observations} observations, model {per_camera[cid].model}"
             )
 
-            def prefixed(line: str, cid: str = cid) -> None:
-                say(f"[{cid}] {line}")
-
+            prefixed = _camera_progress(say, cid)
             try:
                 try:
                     calibs[cid] = calibrate(ds, per_camera[cid], prefixed, keep_connected=False)
@@ -715,13 +713,9 @@ def calibrate_rig(
         ) from failures[0][1]
 
     result = assemble_rig(rig, calibs, per_camera, say, joint, knn_rounds=knn_rounds)
-    first = result.statistics.get("joint")
-    if not untrusted_groups or first is None:
+    if not untrusted_groups or "joint" not in result.statistics:
         return result
-    cams = result.statistics["cameras"]
-    if first["converged"] and all(
-        cams[cid].get("intrinsics_sigma_rig") is not None for cid in untrusted_groups
-    ):
+    if _joint_settles(result, untrusted_groups):
         return result
     # the joint graph started from a doubtful lens (e.g. a largest group fitted exactly):
     # once more, each such camera seeded on all its images
@@ -736,15 +730,11 @@ def calibrate_rig(
         diagnose_log.addFilter(held)
     try:
         for cid, exc in untrusted_groups.items():
-
-            def prefixed(line: str, cid: str = cid) -> None:
-                say(f"[{cid}] {line}")
-
             try:
                 reseeded[cid] = _seed_on_approximate_targets(
                     datasets[cid],
                     per_camera[cid],
-                    prefixed,
+                    _camera_progress(say, cid),
                     exc,
                     say,
                     cid,
@@ -759,16 +749,27 @@ def calibrate_rig(
     if all(reseeded[cid] is calibs[cid] for cid in untrusted_groups):
         return result
     second = assemble_rig(rig, reseeded, per_camera, say, joint, knn_rounds=knn_rounds)
-    if second.statistics["joint"]["converged"] and all(
-        second.statistics["cameras"][cid].get("intrinsics_sigma_rig") is not None
-        for cid in untrusted_groups
-    ):
+    if _joint_settles(second, untrusted_groups):
         return second
     say(
         "the joint rig adjustment from the seeds did not converge or determine them "
         "either: the first kept"
     )
     return result
+
+
+def _camera_progress(say: Callable[[str], None], cid: str) -> Callable[[str], None]:
+    """Camera ``cid``'s progress: each line to ``say`` prefixed with ``[cid]``."""
+    return lambda line: say(f"[{cid}] {line}")
+
+
+def _joint_settles(result: RigCalibration, cids) -> bool:
+    """The rig's joint adjustment converged and determines the intrinsics (a marginal
+    covariance) of every camera of ``cids``."""
+    cams = result.statistics["cameras"]
+    return bool(result.statistics["joint"]["converged"]) and all(
+        cams[cid].get("intrinsics_sigma_rig") is not None for cid in cids
+    )
 
 
 class _HeldForTheJoint(logging.Filter):
