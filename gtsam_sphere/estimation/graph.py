@@ -414,7 +414,12 @@ def target_covariances(
     C = C[:n_c, :n_c]
     A = np.einsum("tij,tjc->tic", cov, Wt)  # N_j^+ W_j^T
     S = C - Wt.reshape(3 * n_t, n_c).T @ A.reshape(3 * n_t, n_c)
-    d = np.sqrt(np.maximum(np.diag(S), 1e-300))
+    # Jacobi scaling by the information before the targets are eliminated: an unknown
+    # the targets' own shifts absorb keeps only round-off in S, of either sign, and its
+    # eigenvalue is dropped below (scaled by S's own diagonal, clamped at 1e-300, such
+    # round-off overflowed: a free ring4 rig of 4 frames, seed 5)
+    diag = np.diag(C)
+    d = np.sqrt(np.where(diag > 0.0, diag, 1.0))
     ev, V = np.linalg.eigh(S / np.outer(d, d))
     keep = ev > 1e-10 * max(float(ev.max()), 1e-300)
     S_inv = (V[:, keep] / ev[keep]) @ V[:, keep].T / np.outer(d, d)

@@ -840,6 +840,21 @@ def _saw_part_alone(statistics: dict) -> bool:
     )
 
 
+#: the joint graph takes back at least this fraction of a camera's own observations
+#: (targets it saw once, which other cameras fix) before its terms are chosen again there
+#: (:func:`_joint_widens`)
+JOINT_WIDENS_FRACTION = 0.5
+
+
+def _joint_widens(statistics: dict) -> bool:
+    """The joint graph adds, to the observations the camera's own adjustment kept, at
+    least :data:`JOINT_WIDENS_FRACTION` of them again: targets it saw once, mostly at the
+    edge of its field where its neighbours' fields overlap. Its own terms were chosen on
+    the narrower field and its mapping is extrapolated over the rest."""
+    kept = statistics.get("n_observations", 0)
+    return statistics.get("n_undetermined_observations", 0) >= JOINT_WIDENS_FRACTION * kept > 0
+
+
 def _joint_determines(cid: str, statistics: dict, jr) -> bool:
     """The joint adjustment ``jr`` converged with a covariance of camera ``cid``'s
     intrinsics, and the camera was calibrated alone on part of its images only."""
@@ -944,7 +959,7 @@ def assemble_rig(
             reselect_terms={
                 c: (radial_terms(options[c].radial_terms), tuple(options[c].brown_terms or ()))
                 for c in ids
-                if _saw_part_alone(calibs[c].statistics)
+                if (_saw_part_alone(calibs[c].statistics) or _joint_widens(calibs[c].statistics))
                 # a seed saw every image (its targets held near their approximate
                 # coordinates): its term set stands (free mixed 6 frames seed 3: g3
                 # added back left 7 of its 165 observations carrying the noise)

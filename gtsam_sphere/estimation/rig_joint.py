@@ -629,11 +629,11 @@ def adjust_rig_jointly(
         Seed of the kNN cross-validation.
     reselect_terms : dict of str -> (radial names, Brown names), optional
         Cameras whose own calibration saw part of their data only (a split or seeded
-        camera, :mod:`.rig`): after the first robust stages the joint graph gives them
-        these terms (the ones their own run started with, those it dropped at 0),
-        adjusts once at the settled scales, drops those the joint data do not support
-        (:func:`.calibrate.terms_to_drop` on the joint covariance) and runs the robust
-        stages again. A term set chosen
+        camera, :mod:`.rig`), or a narrower field (``rig._joint_widens``): after the
+        first robust stages the joint graph gives them these terms (the ones their own
+        run started with, those it dropped at 0), adjusts once at the settled scales,
+        drops those the joint data do not support (:func:`.calibrate.terms_to_drop` on
+        the joint covariance) and runs the robust stages again. A term set chosen
         on 2 of a narrow camera's 6 images dropped every radial term its Brown lens
         needed, and the joint graph, holding that set, placed it 6.8 reported sigmas
         from its true ``cam_from_rig`` (a free mixed rig, 6 frames, seed 50).
@@ -871,7 +871,8 @@ def adjust_rig_jointly(
         say(
             "[rig] the terms of "
             + ", ".join(reselect_terms)
-            + " chosen again in the joint graph (their own calibration saw part of their data)"
+            + " chosen again in the joint graph (their own calibration saw part of their data "
+            "or of their field)"
         )
         stage += 1
         full = optimize(build(), expanded, optimizer, ordering, say, "[rig] ")
