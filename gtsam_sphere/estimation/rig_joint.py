@@ -381,6 +381,10 @@ class JointRigResult:
         of their observations of local redundancy at least ``MIN_REDUNDANCY`` (fewer
         than :data:`MIN_REDUNDANT_OBSERVATIONS`: their targets rest on their own rays);
         their scale was held, and their fit cannot be checked.
+    n_outliers : dict of str -> int
+        Each camera's observations beyond 5 of its sigmas in the final graph and not
+        consistent with their neighbours (:func:`~gtsam_sphere.estimation.correct.blunders`,
+        the single camera's ``n_outliers``).
     """
 
     cam_from_rig: dict[str, Pose]
@@ -400,6 +404,7 @@ class JointRigResult:
     redundancy: int = 0
     notes: list[str] = field(default_factory=list)
     unsettled_scales: list[str] = field(default_factory=list)
+    n_outliers: dict[str, int] = field(default_factory=dict)
     unestimated_scales: dict[str, int] = field(default_factory=dict)
     undetermined_targets: list[str] = field(default_factory=list)
     max_incidence_deg: dict[str, float] = field(default_factory=dict)
@@ -1006,8 +1011,10 @@ def adjust_rig_jointly(
     res_model_of = {cid: p.residuals_px(final) for cid, p in problems.items()}
     good_image, good_target, offset = [], [], 0
     J_all, w_all, w_of = [], [], {}
+    n_outliers: dict[str, int] = {}
     for cid, p in problems.items():
         outlier = blunders(raw_uv[cid], res_model_of[cid], p.noise.sigma_px)
+        n_outliers[cid] = int(outlier.sum())
         # an image per camera and image (two cameras of one frame see from two places)
         good_image.append(offset + p.obs_image[~outlier])
         good_target.append(p.obs_target[~outlier])
@@ -1168,6 +1175,7 @@ def adjust_rig_jointly(
         redundancy=int(redundancy),
         notes=notes,
         unestimated_scales=dict(held),
+        n_outliers=n_outliers,
         unsettled_scales=[
             cid
             for cid, p in problems.items()
