@@ -95,7 +95,7 @@ MAX_STAGES = 8
 #: a camera's robust scale that returns to within this fraction of its estimate two
 #: stages before, and alternates by at most :data:`ALTERNATION_SPAN` of the smaller
 #: value, has settled on a two-cycle of the reweighting: the larger scale is kept (a
-#: free mixed rig, 6 frames, seed 4: the pinhole's 0.3084 and 0.2906 px for 8 stages,
+#: free mixed rig, 6 frames, seed 4: the pinhole's 0.3084 and 0.2906 px to the last stage,
 #: refused as unsettled, its cam_from_rig within 1 sigma)
 ALTERNATION_RTOL = 0.005
 ALTERNATION_SPAN = 0.15
