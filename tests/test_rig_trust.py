@@ -341,16 +341,32 @@ def test_the_joint_adjustment_settles_only_what_it_redoes():
     from types import SimpleNamespace
 
     from gtsam_sphere.estimation.calibrate import Distrust
-    from gtsam_sphere.estimation.rig import JOINT_SETTLES, _joint_determines
+    from gtsam_sphere.estimation.rig import (
+        JOINT_SETTLE_RULES,
+        _joint_determines,
+        _joint_settles_reason,
+    )
 
-    assert set(JOINT_SETTLES) == {
+    assert set(JOINT_SETTLE_RULES) == {
         str(Distrust.NOT_CONVERGED),
         str(Distrust.SINGULAR),
         str(Distrust.FOLD),
+        str(Distrust.KNN_UNSTABLE),
+        str(Distrust.OUTLIERS),
     }
     ok = SimpleNamespace(result=SimpleNamespace(converged=True), intrinsics_sigma={"p": {}})
     split = {"n_images_joint_only": 3}
     assert _joint_determines("p", split, ok)
+    for code in (Distrust.NOT_CONVERGED, Distrust.SINGULAR):
+        assert _joint_settles_reason("p", str(code), split, ok)
+        assert not _joint_settles_reason("p", str(code), {}, ok)  # it saw all its images
+    # the kNN loop's reason only for a camera that fitted its observations exactly
+    assert not _joint_settles_reason("p", str(Distrust.KNN_UNSTABLE), split, ok)
+    exact = {**split, "sigma_px": 0.0}
+    assert _joint_settles_reason("p", str(Distrust.KNN_UNSTABLE), exact, ok)
+    # a reason no rule names always stands
+    assert not _joint_settles_reason("p", str(Distrust.SIGMA_GROWTH), exact, ok)
+    assert not _joint_settles_reason("p", None, exact, ok)
     assert not _joint_determines("p", {}, ok)
     assert not _joint_determines("p", split, None)
     failed = SimpleNamespace(result=SimpleNamespace(converged=False), intrinsics_sigma={"p": {}})
@@ -534,10 +550,10 @@ def test_a_camera_s_outliers_against_an_exact_fit_alone_are_settled_by_the_joint
         _within_three_sigma(calib, cam)
     res = np.zeros((20, 2))
     assert _joint_outlier_share_ok(
-        "c", SimpleNamespace(residuals_px={"c": res}, n_outliers={"c": 2})
+        "c", {}, SimpleNamespace(residuals_px={"c": res}, n_outliers={"c": 2})
     )
     assert not _joint_outlier_share_ok(
-        "c", SimpleNamespace(residuals_px={"c": res}, n_outliers={"c": 3})
+        "c", {}, SimpleNamespace(residuals_px={"c": res}, n_outliers={"c": 3})
     )
 
 
@@ -622,11 +638,11 @@ def test_a_fold_is_settled_only_where_the_joint_mapping_does_not_fold():
     def jr(cam, field):
         return SimpleNamespace(cameras={"p": cam}, max_incidence_deg={"p": field})
 
-    assert _joint_unfolds("p", jr(smooth, 60.0))
-    assert _joint_unfolds("p", jr(folds, fold_deg - 1.0))
-    assert not _joint_unfolds("p", jr(folds, fold_deg + 1.0))
-    assert _joint_unfolds("p", jr(SphereCamera(640, 480, 320.0, 240.0, 400.0), 170.0))
-    assert not _joint_unfolds("q", jr(smooth, 60.0))  # no joint figures for that camera
+    assert _joint_unfolds("p", {}, jr(smooth, 60.0))
+    assert _joint_unfolds("p", {}, jr(folds, fold_deg - 1.0))
+    assert not _joint_unfolds("p", {}, jr(folds, fold_deg + 1.0))
+    assert _joint_unfolds("p", {}, jr(SphereCamera(640, 480, 320.0, 240.0, 400.0), 170.0))
+    assert not _joint_unfolds("q", {}, jr(smooth, 60.0))  # no joint figures for that camera
 
 
 @pytest.mark.slow  # a two-camera rig of 6 frames, ~9 s
@@ -693,7 +709,7 @@ def test_an_exactly_fitted_cameras_unstable_knn_loop_is_settled_by_the_joint_gra
         for w in calib.statistics["warnings"]
     )
     _within_three_sigma(calib, sim.cameras[1])
-    assert not _fitted_exactly({"sigma_px": 2 * MIN_SIGMA_PX})
+    assert not _fitted_exactly("pinhole", {"sigma_px": 2 * MIN_SIGMA_PX})
 
 
 @pytest.mark.slow  # a stereo rig of 6 frames, ~8 s

@@ -538,7 +538,7 @@ def _seed_on_approximate_targets(
     approximate coordinates (sigma :data:`SEED_TARGET_SIGMA_FRACTION` of the targets'
     extent). Only a start for the joint adjustment, which frees the targets again and
     adjusts the camera with the others (``statistics["seeded_on_approximate_targets"]``:
-    the sigma used; the joint adjustment then settles what :data:`JOINT_SETTLES`
+    the sigma used; the joint adjustment then settles what :data:`JOINT_SETTLE_RULES`
     lists). A narrow camera of a free-network rig (``simulate --rig mixed --frames 6
     --seed 3``, every sigma removed) had 6 images in groups of 3, 2 and 1 that shared
     no target, and in its largest group the targets were each seen once: the rig was
@@ -794,47 +794,19 @@ class _HeldForTheJoint(logging.Filter):
         return False
 
 
-#: reasons not to trust a camera's own adjustment that the joint adjustment settles for a
-#: camera whose own images form groups sharing no target (:func:`largest_connected_part`):
-#: alone it saw only its largest group; the joint graph adjusts it with every image. A
-#: fold is settled only when the jointly adjusted mapping does not fold inside the field
-#: the camera's observations span in the joint graph (:func:`_joint_unfolds`)
-JOINT_SETTLES = (str(Distrust.NOT_CONVERGED), str(Distrust.SINGULAR), str(Distrust.FOLD))
-
-#: reasons the joint adjustment also settles for a camera whose own adjustment (on part
-#: of its data: its largest group of images, or a seed on approximate targets,
-#: :func:`_seed_on_approximate_targets`) fitted its observations exactly, its robust
-#: scale at the floor (``calibrate.MIN_SIGMA_PX``): its kNN loop then learned from
-#: residuals of hundredths of a pixel or less, and whether it became stable says nothing
-#: of the lens. Free mixed rig, 6 frames: seed 5 (seeded, 0.021 px RMS) was refused on
-#: it once the initialisation's refit changed, and seed 11 (largest group of 4 images,
-#: 2e-13 px) always; their joint cam_from_rig are 0.11 deg / 2.7 mm and 0.07 deg /
-#: 1.5 mm off, within 1.4 reported sigma
-EXACT_FIT_SETTLES = (str(Distrust.KNN_UNSTABLE),)
-
-
-#: a camera's own "outliers" reason (more than ``calibrate.OUTLIER_SHARE`` of its
-#: observations beyond 5 sigma) that the joint adjustment settles, for a camera that saw
-#: part of its data alone, when its share in the joint graph is within the limit (at its
-#: joint scale): a ring camera of a free network, 4 frames, seed 9, kept 85 of its 275
-#: observations alone, fitted them to 0.020 px, and 11 were "beyond 5 sigma" (0.1 px);
-#: jointly its scale is 0.29 px, its cam_from_rig within 3 sigma
-JOINT_OUTLIERS_SETTLE = (str(Distrust.OUTLIERS),)
-
-
-def _joint_outlier_share_ok(cid: str, jr) -> bool:
+def _joint_outlier_share_ok(cid: str, statistics: dict, jr) -> bool:
     """Camera ``cid``'s blunders in the joint graph are at most ``calibrate.OUTLIER_SHARE``
     of its observations there."""
     n = int(np.isfinite(jr.residuals_px[cid]).all(axis=1).sum())
     return jr.n_outliers.get(cid, 0) <= OUTLIER_SHARE * max(n, 1)
 
 
-def _fitted_exactly(statistics: dict) -> bool:
+def _fitted_exactly(cid: str, statistics: dict, jr=None) -> bool:
     """The camera's own robust scale ended at the floor (``calibrate.MIN_SIGMA_PX``)."""
     return float(statistics.get("sigma_px", np.inf)) <= MIN_SIGMA_PX * (1.0 + 1e-9)
 
 
-def _joint_unfolds(cid: str, jr) -> bool:
+def _joint_unfolds(cid: str, statistics: dict, jr) -> bool:
     """Camera ``cid``'s jointly adjusted radial mapping keeps increasing over the whole
     field its observations span in the joint graph (``jr.max_incidence_deg``)."""
     cam = jr.cameras.get(cid)
@@ -880,6 +852,91 @@ def _joint_determines(cid: str, statistics: dict, jr) -> bool:
         and _saw_part_alone(statistics)
         and jr.result.converged
         and jr.intrinsics_sigma.get(cid) is not None
+    )
+
+
+@dataclass(frozen=True)
+class JointSettle:
+    """How the joint adjustment settles one reason not to trust a camera's own adjustment.
+
+    Only for a camera its own adjustment saw part of the data of, when the joint
+    adjustment converged with a covariance of its intrinsics (:func:`_joint_determines`);
+    then when ``holds(cid, statistics, jr)`` too. ``explain(cid, statistics, jr,
+    camera_stats)`` ends the warning the reason becomes ("" or "; ...")."""
+
+    holds: Callable[[str, dict, object], bool]
+    explain: Callable[[str, dict, object, dict], str]
+
+
+def _always(cid: str, statistics: dict, jr) -> bool:
+    return True
+
+
+def _nothing_to_add(cid: str, statistics: dict, jr, camera_stats: dict) -> str:
+    return ""
+
+
+def _explain_unfolds(cid: str, statistics: dict, jr, camera_stats: dict) -> str:
+    return (
+        f"; its jointly adjusted mapping does not fold inside the "
+        f"{jr.max_incidence_deg[cid]:.1f} deg the joint graph observes"
+    )
+
+
+def _explain_exact(cid: str, statistics: dict, jr, camera_stats: dict) -> str:
+    return (
+        f"; alone it fitted its observations exactly (robust scale at the "
+        f"{MIN_SIGMA_PX:g} px floor), so its kNN loop had nothing to learn"
+    )
+
+
+def _explain_outliers(cid: str, statistics: dict, jr, camera_stats: dict) -> str:
+    return (
+        f"; in the joint graph {jr.n_outliers[cid]} of its "
+        f"{camera_stats[cid]['n_observations_rig']} observations are beyond 5 sigma"
+    )
+
+
+#: the reasons not to trust a camera's own adjustment (:class:`Distrust` codes) that the
+#: joint adjustment settles, for a camera its own adjustment saw part of the data of (its
+#: largest group of images, :func:`largest_connected_part`; a seed on approximate
+#: targets, :func:`_seed_on_approximate_targets`; or the targets it saw twice), and
+#: what else must hold. Every other reason stands.
+#:
+#: - ``not-converged``, ``singular``: alone it saw part of its images; the joint graph
+#:   adjusts it with all of them.
+#: - ``fold``: moreover the jointly adjusted mapping keeps increasing over the whole field
+#:   the camera's observations span in the joint graph (:func:`_joint_unfolds`).
+#: - ``knn-unstable``: moreover its own robust scale ended at the floor
+#:   (``calibrate.MIN_SIGMA_PX``, :func:`_fitted_exactly`): its kNN loop learned from
+#:   residuals of hundredths of a pixel or less, and whether it became stable says
+#:   nothing of the lens. Free mixed rig, 6 frames: seed 5 (seeded, 0.021 px RMS) was
+#:   refused on it once the initialisation's refit changed, and seed 11 (largest group of
+#:   4 images, 2e-13 px) always; their joint cam_from_rig are 0.11 deg / 2.7 mm and
+#:   0.07 deg / 1.5 mm off, within 1.4 reported sigma.
+#: - ``outliers`` (more than ``calibrate.OUTLIER_SHARE`` of its observations beyond 5
+#:   sigma): moreover its share in the joint graph, at its joint scale, is within the
+#:   limit (:func:`_joint_outlier_share_ok`): a ring camera of a free network, 4 frames,
+#:   seed 9, kept 85 of its 275 observations alone, fitted them to 0.020 px, and 11 were
+#:   "beyond 5 sigma" (0.1 px); jointly its scale is 0.29 px, its cam_from_rig within 3
+#:   sigma.
+JOINT_SETTLE_RULES: dict[str, JointSettle] = {
+    str(Distrust.NOT_CONVERGED): JointSettle(_always, _nothing_to_add),
+    str(Distrust.SINGULAR): JointSettle(_always, _nothing_to_add),
+    str(Distrust.FOLD): JointSettle(_joint_unfolds, _explain_unfolds),
+    str(Distrust.KNN_UNSTABLE): JointSettle(_fitted_exactly, _explain_exact),
+    str(Distrust.OUTLIERS): JointSettle(_joint_outlier_share_ok, _explain_outliers),
+}
+
+
+def _joint_settles_reason(cid: str, code: str | None, statistics: dict, jr) -> bool:
+    """The joint adjustment ``jr`` settles camera ``cid``'s own reason ``code``
+    (:data:`JOINT_SETTLE_RULES`)."""
+    rule = JOINT_SETTLE_RULES.get(code)
+    return (
+        rule is not None
+        and _joint_determines(cid, statistics, jr)
+        and rule.holds(cid, statistics, jr)
     )
 
 
@@ -1080,29 +1137,8 @@ def assemble_rig(
         st = calibs[cid].statistics
         codes = st.get("distrust_codes", [None] * len(st.get("distrust", [])))
         for code, reason in zip(codes, st.get("distrust", [])):
-            exact = code in EXACT_FIT_SETTLES and _fitted_exactly(st)
-            settles = (
-                code in JOINT_SETTLES or exact or code in JOINT_OUTLIERS_SETTLE
-            ) and _joint_determines(cid, st, jr)
-            if settles and code == str(Distrust.FOLD):
-                settles = _joint_unfolds(cid, jr)
-            if settles and code in JOINT_OUTLIERS_SETTLE:
-                settles = _joint_outlier_share_ok(cid, jr)
-            if settles:
-                how = (
-                    f"; its jointly adjusted mapping does not fold inside the "
-                    f"{jr.max_incidence_deg[cid]:.1f} deg the joint graph observes"
-                    if code == str(Distrust.FOLD)
-                    else f"; in the joint graph {jr.n_outliers[cid]} of its "
-                    f"{camera_stats[cid]['n_observations_rig']} observations are beyond 5 sigma"
-                    if code in JOINT_OUTLIERS_SETTLE
-                    else (
-                        f"; alone it fitted its observations exactly (robust scale at the "
-                        f"{MIN_SIGMA_PX:g} px floor), so its kNN loop had nothing to learn"
-                        if exact
-                        else ""
-                    )
-                )
+            if _joint_settles_reason(cid, code, st, jr):
+                how = JOINT_SETTLE_RULES[code].explain(cid, st, jr, camera_stats)
                 settled.append(
                     f"camera {cid!r}: its own adjustment on part of its data (its largest "
                     f"group of images, or the targets it saw twice): {reason}; the joint "
@@ -1112,7 +1148,7 @@ def assemble_rig(
             else:
                 distrust.append(f"camera {cid!r}: {reason}")
     for cid in ids if jr is not None else []:
-        if not _joint_outlier_share_ok(cid, jr):
+        if not _joint_outlier_share_ok(cid, {}, jr):
             distrust.append(
                 f"camera {cid!r}: {jr.n_outliers[cid]} of its "
                 f"{camera_stats[cid]['n_observations_rig']} observations are beyond 5 sigma "
