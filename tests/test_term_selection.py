@@ -269,3 +269,83 @@ def test_a_pair_is_judged_with_the_uncertainty_of_sigma():
     assert likelihood_ratio(14.2, 32.0) == pytest.approx(32.0 * np.log1p(14.2 / 32.0))
     assert likelihood_ratio(14.2, 32.0) < likelihood_ratio(20.0, 32.0) < 20.0
     assert likelihood_ratio(np.inf, 32.0) == np.inf and likelihood_ratio(3.0, 0.0) == 3.0
+
+
+def test_the_warp_follows_an_initial_lens_its_terms_cannot():
+    """A 322 deg stereographic lens (f = 32 px, ``r = 2 f tan(a / 2)`` to 161 deg): six
+    terms at ``w = 0`` miss the noise-free curve by more than ``LENS_MISFIT_PX``, a
+    positive warp follows it within ``LENS_MISFIT_GAIN`` of that, with sane terms."""
+    from gtsam_sphere.core.camera import radial_g
+    from gtsam_sphere.estimation.calibrate import (
+        LENS_MISFIT_GAIN,
+        LENS_MISFIT_PX,
+        _lens_fit,
+        warp_following_lens,
+    )
+
+    rng = np.random.default_rng(2)
+    alpha = np.arccos(rng.uniform(np.cos(np.radians(161.0)), 1.0, 1500))
+    radius = 2.0 * 32.0 * np.tan(alpha / 2.0)
+    choice = warp_following_lens(alpha, radius, 6)
+    assert choice is not None
+    w, misfit, current, cg = choice
+    assert 0.25 <= w <= 0.75, choice
+    assert current > LENS_MISFIT_PX and misfit <= LENS_MISFIT_GAIN * current
+    assert current == pytest.approx(_lens_fit(alpha, radius, 6, 0.0)[0])
+    # the start it returns is that fit: c g(alpha) follows the lens to its misfit
+    pred = cg[0] * radial_g(alpha, cg[1:], warp=w)
+    assert np.sqrt(np.mean((pred - radius) ** 2)) == pytest.approx(misfit, rel=1e-6)
+    assert cg[0] == pytest.approx(32.0, rel=0.25)
+    # from that warp there is nothing more to gain
+    assert warp_following_lens(alpha, radius, 6, w) is None
+    # rows outside the lens's domain (NaN radii) are left out, not propagated
+    with_nan = np.concatenate([radius, np.full(50, np.nan)])
+    again = warp_following_lens(np.concatenate([alpha, np.full(50, 3.0)]), with_nan, 6)
+    assert again is not None and again[:3] == choice[:3]
+
+
+@pytest.mark.parametrize(
+    ("radius_of", "alpha_max_deg"),
+    [
+        (lambda a: 500.0 * a, 180.0),  # equidistant: w = 0 is exact
+        (lambda a: 2.0 * 400.0 * np.sin(a / 2.0), 170.0),  # equisolid
+        (lambda a: 2.0 * 250.0 * np.tan(a / 2.0), 95.0),  # a 190 deg stereographic
+    ],
+)
+def test_the_warp_stays_where_the_terms_follow_the_initial_lens(radius_of, alpha_max_deg):
+    """Where six terms at the current warp follow the initial lens (within
+    ``LENS_MISFIT_PX``), the warp stays; so it does with too few rows."""
+    from gtsam_sphere.estimation.calibrate import warp_following_lens
+
+    alpha = np.linspace(0.01, np.radians(alpha_max_deg), 800)
+    assert warp_following_lens(alpha, radius_of(alpha), 6) is None
+    assert warp_following_lens(alpha[:20], radius_of(alpha[:20]), 6) is None
+
+
+@pytest.mark.slow  # ~10 s
+def test_a_322_deg_stereographic_lens_is_adjusted_in_a_warp_its_terms_follow():
+    """Stress seed 1129 case s14 of ``bench_lens_zoo.py``: a 322 deg stereographic lens
+    on a 0.35 circle (f = 32 px), a board, 1 px noise. The initial lens is the
+    stereographic family; with ``w = 0`` the six terms miss it by 0.12 px, and the
+    camera stations ended 1.31x the oracle's error (9.1 mm against 6.9 mm). The
+    calibration now says which warp it took, and the stations are within 1.15x of the
+    oracle's."""
+    from gtsam_sphere.simulate.oracle import oracle_calibration
+
+    sim = simulate_room(
+        SimulationOptions(
+            lens="stereographic", fov_deg=322.0, width=1920, height=1080,
+            circle_radius_px=378.0,
+            lens_options={"a1": -0.019978, "a2": -0.001217, "p1": 0.000169, "p2": 3.7e-05,
+                          "cx": 890.38, "cy": 545.98},
+            pupil_shift_m=0.0038, n_images=25, noise_px=1.0, sigma_mode="fixed",
+            scene="board", seed=466965369,
+        )
+    )  # fmt: skip
+    lines: list[str] = []
+    calib = calibrate(parse_dataset(sim.dataset), progress=lines.append)
+    assert calib.statistics["trusted"], calib.statistics["distrust"]
+    took = [ln for ln in lines if "follow the initial lens (stereographic" in ln]
+    assert len(took) == 1, took
+    oracle = oracle_calibration(sim, 466965369)
+    assert _station_error_m(calib, sim) < 1.15 * _station_error_m(oracle, sim)
