@@ -1235,9 +1235,8 @@ def _calibrate_once(
         say(f"radial mapping with a warp (the initial lens squeezes its rim): w = {warp_w:.3f}")
     lens_cg = None  # the radial mapping's start when it follows the initial lens
     if radial_names is not None and init.lens_radius_px is not None and inlier_mask is not None:
-        norm = np.linalg.norm(pc, axis=1)
-        alpha = np.arccos(np.clip(pc[:, 2] / np.where(norm > 0, norm, 1.0), -1.0, 1.0))
-        rows = np.asarray(inlier_mask, bool) & (norm > 0)
+        alpha = np.radians(incidence_deg(pc))
+        rows = np.asarray(inlier_mask, bool) & (np.linalg.norm(pc, axis=1) > 0)
         follows = warp_following_lens(
             alpha[rows], init.lens_radius_px(alpha[rows]), len(radial_names), warp_w or 0.0
         )
