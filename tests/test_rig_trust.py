@@ -709,7 +709,7 @@ def test_an_exactly_fitted_cameras_unstable_knn_loop_is_settled_by_the_joint_gra
         for w in calib.statistics["warnings"]
     )
     _within_three_sigma(calib, sim.cameras[1])
-    assert not _fitted_exactly("pinhole", {"sigma_px": 2 * MIN_SIGMA_PX})
+    assert not _fitted_exactly("pinhole", {"sigma_px": 2 * MIN_SIGMA_PX}, None)
 
 
 @pytest.mark.slow  # a stereo rig of 6 frames, ~8 s

@@ -801,7 +801,7 @@ def _joint_outlier_share_ok(cid: str, statistics: dict, jr) -> bool:
     return jr.n_outliers.get(cid, 0) <= OUTLIER_SHARE * max(n, 1)
 
 
-def _fitted_exactly(cid: str, statistics: dict, jr=None) -> bool:
+def _fitted_exactly(cid: str, statistics: dict, jr) -> bool:
     """The camera's own robust scale ended at the floor (``calibrate.MIN_SIGMA_PX``)."""
     return float(statistics.get("sigma_px", np.inf)) <= MIN_SIGMA_PX * (1.0 + 1e-9)
 
