@@ -424,6 +424,7 @@ def test_an_untrusted_alternative_keeps_the_first_result(monkeypatch):
     assert any("not trusted from the alternative either" in ln for ln in lines)
 
 
+@pytest.mark.slow
 def test_the_fold_probe_runs_between_the_first_adjustments_stages(monkeypatch):
     """``adjust``'s ``after_stage`` hook carries the fold probe: a mapping found folding
     after the first stage stops the radial run there (the sphere model follows); the
@@ -465,6 +466,7 @@ def test_the_fold_probe_runs_between_the_first_adjustments_stages(monkeypatch):
     assert calib.model == "sphere"
 
 
+@pytest.mark.slow
 def test_a_sphere_model_that_fits_far_worse_does_not_replace_the_radial_one(monkeypatch):
     """A 200 deg equidistant lens does not fold. Made to look folding at the first probe,
     the sphere model takes over only if it fits as well; it does not (tens of px against
@@ -553,6 +555,7 @@ def test_a_term_selection_that_costs_sigma_is_reverted(monkeypatch):
     assert set(terms) <= set(calib.statistics["intrinsics_names"]), terms
 
 
+@pytest.mark.slow
 def test_a_final_sigma_far_above_the_first_adjustments_is_not_trusted(monkeypatch):
     """Every step after the first adjustment is kept only when it fits about as well, so
     a final robust sigma above ``SIGMA_GROWTH`` times the first adjustment's says one of
@@ -586,6 +589,7 @@ def _small_radial_knn_run(knn: dict):
     return calibrate(parse_dataset(sim.dataset), options, lines.append), lines
 
 
+@pytest.mark.slow
 def test_a_knn_loop_that_runs_out_of_rounds_is_not_trusted():
     """The loop needs two rounds to see the CV score stable; with one round it runs out,
     says so, keeps its best round, and the calibration is not trusted."""
@@ -895,6 +899,7 @@ def _small_room(lens: str):
     )
 
 
+@pytest.mark.slow
 def test_a_chosen_model_that_does_not_follow_the_lens_is_not_trusted():
     """The paper's sphere mapping chosen for an equidistant lens leaves its misfit in the
     residuals: the radial reference from the same start fits far better, and the result

@@ -143,6 +143,7 @@ def test_ctrl_c_leaves_the_previous_file_and_says_so(small_room, tmp_path, capsy
     assert [p.name for p in tmp_path.iterdir()] == ["c.json"]  # no temporary left behind
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("unbuffered", [False, True])
 def test_closed_stdout_ends_quietly(tmp_path, unbuffered):
     """``gtsam-sphere ... | head``: exit 141, no "error: Broken pipe", no traceback.

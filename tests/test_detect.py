@@ -252,6 +252,7 @@ def test_predict_and_refine_rejects_corners_off_the_board():
     assert status == "ok" and added == {}
 
 
+@pytest.mark.slow
 def test_rescue_partial_chessboard():
     from gtsam_sphere.apps.detect import rescue_partial_chessboard
 
@@ -344,6 +345,7 @@ def test_aruco_markers_with_csv(tmp_path):
         detect_images([str(tmp_path / "room.png")], board, progress=False)
 
 
+@pytest.mark.slow
 def test_detect_images_and_cli(tmp_path, capsys):
     board = BoardSpec.parse("chessboard:4x6:0.04")
     paths = []

@@ -177,6 +177,7 @@ def test_detect_cli_rig_by_stem(tmp_path, board_images, capsys):
     assert rig.frame_ids == ["000", "001", "002"]
 
 
+@pytest.mark.slow
 def test_detect_cli_rig_by_timestamp_and_errors(tmp_path, board_images, capsys):
     a, b, blank = board_images
     _write(tmp_path / "c0", ["cam0_1650000000.000.png", "cam0_1650000000.100.png"], [a, b])

@@ -76,6 +76,7 @@ def first_run(tmp_path_factory):
     return dataset, calib, rc
 
 
+@pytest.mark.slow
 def test_calibrate_twice_in_one_process_gives_identical_bytes(first_run):
     dataset, first, rc_first = first_run
     second = first.with_name("second.json")

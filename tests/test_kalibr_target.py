@@ -186,6 +186,7 @@ def test_aprilgrid_described_smaller_is_refused():
         detect_image(img, BoardSpec.aprilgrid(5, 5, 0.088, 0.3))
 
 
+@pytest.mark.slow
 def test_cli_detect_with_kalibr_target(tmp_path, capsys):
     paths = []
     for view in ("front", "side"):
@@ -268,6 +269,7 @@ def test_aprilgrid_renders_to_calibration_recover_the_lens(tmp_path):
     assert calib.statistics["rms_px"] < 0.1
 
 
+@pytest.mark.slow
 def test_cli_rig_detect_with_kalibr_target(tmp_path, capsys):
     from gtsam_sphere.cli import main
 

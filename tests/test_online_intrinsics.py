@@ -132,6 +132,7 @@ def test_isam2_stays_put_without_drift(tracks):
     assert np.abs(smoothed).max() < 0.3 and np.sqrt(np.mean(smoothed**2)) < 0.1
 
 
+@pytest.mark.slow
 def test_isam2_tracks_with_an_imprecise_map():
     """The map's landmarks are off by 5 mm (1 sigma) and estimated as Point3 variables
     with that prior, along with the poses and the drifting c (2 px over 40 frames).

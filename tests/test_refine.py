@@ -48,6 +48,7 @@ def test_partitioned_solve_equals_the_global_solve_and_the_truth(small_map, glob
     assert final < 0.15 * start
 
 
+@pytest.mark.slow
 def test_host_keeping_one_submap_alive_gives_the_same_answer_bit_for_bit(small_map):
     """A host of 3 submaps that keeps 1 worker alive makes the others again from their data
     at each call: the same steps, to the last bit, and never more than 1 alive."""
@@ -85,6 +86,7 @@ def test_partition_balances_observations_and_cuts_at_doors(small_map):
     assert sum(s.n_observations for s in submaps) == problem.n_observations
 
 
+@pytest.mark.slow
 def test_interrupted_run_resumes_from_its_checkpoint(small_map, global_result, tmp_path):
     problem = small_map[1]
     checkpoint = tmp_path / "run.checkpoint.npz"

@@ -70,6 +70,7 @@ def test_rig_page(tmp_path):
     assert '<a href="cam0/index.html">cam0</a>' in html and "rig.png" in html
 
 
+@pytest.mark.slow
 def test_report_cli_on_a_rig_writes_camera_pages(tmp_path, capsys):
     path = _with_frames(small_rig(2)).save(tmp_path / "rig.json")
     assert main(["report", str(path), "-o", str(tmp_path / "rep")]) == 0

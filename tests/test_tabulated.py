@@ -130,6 +130,7 @@ def test_table_project_unproject_round_trip_and_agreement_with_exact():
     assert plain.correction_table() is None
 
 
+@pytest.mark.slow
 def test_table_is_cached_and_follows_a_new_correction():
     cam = _camera(_knn())
     t1 = cam.correction_table()

@@ -47,6 +47,7 @@ def test_rendered_6x8_board_described_as_4x6_is_refused(view):
     assert rms_vs_truth(det, truth)[0] < 0.1
 
 
+@pytest.mark.slow
 def test_rendered_6x8_board_described_as_6x7_is_refused():
     # one row short: only one border continues (OpenCV finds no 5x8 grid at all here)
     img, _ = _render("a")

@@ -469,6 +469,7 @@ def test_map_of_a_calibration_is_compensated_over_its_observations():
     assert "no stored observation" in uncertainty_map_of(calib, n_cols=12).fit_note
 
 
+@pytest.mark.slow
 def test_report_says_which_map_it_shows(tmp_path):
     calib = _calibration(
         {"intrinsics_covariance": covariance().tolist(), "intrinsics_names": NAMES}
