@@ -33,7 +33,13 @@ over the seeds of the true extrinsic errors, of the reported sigma and of the
 known-family sigma, with ``err/exp`` (true error over the known-family sigma, goal
 <= 1.6) and ``err/sig`` (over the calibration's own sigma).
 
+The lens zoo's rigs (``--zoo``, :data:`gtsam_sphere.simulate.rigs.ZOO_RIG_KINDS`) put
+the single-camera zoo's harder lenses on rigs: circular fisheyes on a third of the
+sensor, catadioptric and double-sphere pairs, a ring of FOV-model lenses, a 300 degree
+fisheye with a pinhole, full-frame circles the sensor crops.
+
     python benchmarks/bench_rig.py --quick                 # 6 frames, 2 seeds
+    python benchmarks/bench_rig.py --zoo --seeds 1         # the zoo's rigs
     python benchmarks/bench_rig.py [--frames 12] [--seed 1] [--seeds 2] [--only ring4]
                                    [--model radial] [--max-iterations 400]
                                    [--no-oracle] [--json out.json]
@@ -61,7 +67,13 @@ from gtsam_sphere import load_calibration  # noqa: E402
 from gtsam_sphere.analysis.evaluate import evaluate_checkpoints  # noqa: E402
 from gtsam_sphere.cli import main as cli_main  # noqa: E402
 from gtsam_sphere.io.dataset import load_checkpoints  # noqa: E402
-from gtsam_sphere.simulate import RIG_KINDS, RigOptions, simulate_rig, write_rig_simulation  # noqa: E402
+from gtsam_sphere.simulate import (  # noqa: E402
+    RIG_KINDS,
+    ZOO_RIG_KINDS,
+    RigOptions,
+    simulate_rig,
+    write_rig_simulation,
+)
 from gtsam_sphere.simulate.oracle import oracle_rig_calibration  # noqa: E402
 
 
@@ -321,6 +333,12 @@ def main(argv: list[str] | None = None) -> int:
         help="skip the oracle and the known-family references (the first table only)",
     )
     p.add_argument("--noise-px", type=float, default=0.3)
+    p.add_argument(
+        "--zoo",
+        action="store_true",
+        help="the lens zoo's rigs (small circles, catadioptric, double sphere, FOV ring, "
+        "300 deg + pinhole, cropped circles) instead of the four base rigs",
+    )
     p.add_argument("--only", default=None, help="comma-separated rigs")
     p.add_argument("--model", default=None, help="calibrate --model (default: the CLI's)")
     p.add_argument("--max-iterations", type=int, default=None, help="calibrate --max-iterations")
@@ -328,7 +346,9 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     if args.frames is None:
         args.frames = 6 if args.quick else 12
-    kinds = RIG_KINDS if not args.only else tuple(args.only.split(","))
+    kinds = (
+        (ZOO_RIG_KINDS if args.zoo else RIG_KINDS) if not args.only else tuple(args.only.split(","))
+    )
     runs = []
     seeds = list(range(args.seed, args.seed + max(1, args.seeds)))
     with tempfile.TemporaryDirectory() as tmp:

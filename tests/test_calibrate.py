@@ -375,7 +375,7 @@ def test_sphere_fits_worse_compares_the_two_first_adjustments():
     assert sphere_fits_worse(float("nan"), 1.0) != ""  # no usable fit is no better fit
 
 
-def _retry_branch(monkeypatch, alternative_trusted: bool):
+def _retry_branch(monkeypatch, alternative_trusted: bool, alternative_sigma_px: float = 0.2):
     """:func:`calibrate` with ``_calibrate_once`` replaced: the first run is not trusted
     and its initialisation has two alternative lenses; the second run is (not) trusted."""
     import gtsam_sphere.estimation.calibrate as cal_mod
@@ -396,9 +396,15 @@ def _retry_branch(monkeypatch, alternative_trusted: bool):
         calls.append(init_in)
         trusted = alternative_trusted if init_in is not None else False
         distrust = [] if trusted else ["the kNN loop did not settle"]
+        sigma = alternative_sigma_px if init_in is not None else 0.2
         calib = types.SimpleNamespace(
             model="radial+knn",
-            statistics={"trusted": trusted, "distrust": distrust, "run": len(calls)},
+            statistics={
+                "trusted": trusted,
+                "distrust": distrust,
+                "run": len(calls),
+                "sigma_px": sigma,
+            },
         )
         return calib, (first_init if init_in is None else init_in)
 
@@ -414,6 +420,25 @@ def test_an_untrusted_result_is_calibrated_again_from_the_next_initial_lens(monk
     assert calib.statistics["run"] == 2 and calib.statistics["trusted"]
     assert calib.statistics["initial_lens_fallback"].startswith("warp w = 0 -> -1")
     assert any("40 observations inconsistent" in ln and "w = -1.0" in ln for ln in lines)
+
+
+@pytest.mark.parametrize("ratio, kept", [(1.5, True), (1.6, False)])
+def test_a_trusted_alternative_that_fits_worse_keeps_the_first_result(monkeypatch, ratio, kept):
+    """Zoo stress 2912 s37: the alternative was trusted with 2.7x the first's sigma, at
+    3.6x the oracle's 3D error; the first (not trusted: a fold where nothing was seen)
+    was 0.76x. Up to ALTERNATIVE_SIGMA_LIMIT = 1.5x the alternative is kept."""
+    calib, calls, lines, alts = _retry_branch(
+        monkeypatch, alternative_trusted=True, alternative_sigma_px=0.2 * ratio
+    )
+    assert calls == [None, alts[0]]
+    assert calib.statistics["trusted"] is kept
+    assert calib.statistics["run"] == (2 if kept else 1)
+    if kept:
+        assert "initial_lens_fallback_refused" not in calib.statistics
+    else:
+        refused = calib.statistics["initial_lens_fallback_refused"]
+        assert "sigma 0.3200 px against 0.2000 px" in refused and "w = -1" in refused
+        assert any("the first result is kept" in ln for ln in lines)
 
 
 def test_an_untrusted_alternative_keeps_the_first_result(monkeypatch):

@@ -13,8 +13,11 @@ from gtsam_sphere.cli import main
 from gtsam_sphere.io.dataset import load_checkpoints, load_rig_dataset
 from gtsam_sphere.simulate import (
     RIG_KINDS,
+    ZOO_RIG_KINDS,
+    RigCamera,
     RigOptions,
     lens_from_dict,
+    make_lens,
     rig_cameras,
     simulate_rig,
     write_rig_simulation,
@@ -29,7 +32,7 @@ def write(kind: str, out, **kw) -> dict:
     return write_rig_simulation(simulate_rig(RigOptions(rig=kind, **kw)), out)
 
 
-@pytest.mark.parametrize("kind", RIG_KINDS)
+@pytest.mark.parametrize("kind", RIG_KINDS + ZOO_RIG_KINDS)
 def test_rig_files_parse(kind, tmp_path):
     paths = write(kind, tmp_path, n_frames=4, seed=2)
     rig = load_rig_dataset(paths["dataset"])
@@ -48,7 +51,7 @@ def test_rig_files_parse(kind, tmp_path):
     assert units == "m" and len(ids) > 20 and set(ids) <= set(rig.target_ids)
 
 
-@pytest.mark.parametrize("kind", RIG_KINDS)
+@pytest.mark.parametrize("kind", RIG_KINDS + ZOO_RIG_KINDS)
 def test_truth_reproduces_noiseless_observations(kind):
     sim = simulate_rig(RigOptions(rig=kind, n_frames=3, seed=5, noise_px=0.0))
     truth = sim.truth
@@ -217,6 +220,35 @@ def test_calibrate_simulated_rig(kind, tmp_path):
         assert np.linalg.norm(t - t_true) < trans_tol
 
 
+@pytest.mark.slow
+def test_zoo_rig_of_small_circles_is_trusted_and_as_accurate_as_the_oracle(tmp_path):
+    """The rig of two 250 deg equisolid fisheyes on a third of their sensors (issue 12's
+    failing single camera, twice): the default calibration exits 0 with both cameras
+    trusted, its check points within 1.15x of the oracle's (true lenses and extrinsics
+    held), the second camera's extrinsics within 3 sigma of the truth."""
+    from gtsam_sphere.analysis.evaluate import evaluate_checkpoints
+    from gtsam_sphere.simulate.oracle import oracle_rig_calibration
+
+    sim = simulate_rig(RigOptions(rig="dual360-small-circle", n_frames=12, seed=1))
+    paths = write_rig_simulation(sim, tmp_path)
+    out = tmp_path / "calib.json"
+    assert main(["calibrate", str(paths["dataset"]), "-o", str(out), "--quiet"]) == 0
+    calib = load_calibration(out)
+    assert all(calib.statistics["cameras"][c]["trusted"] for c in ("front", "back"))
+    cp_ids, cp_xyz, _ = load_checkpoints(paths["checkpoints"])
+    ours = evaluate_checkpoints(calib.target_ids, calib.target_xyz, cp_ids, cp_xyz).rmse_3d
+    oracle = oracle_rig_calibration(sim)
+    ref = evaluate_checkpoints(oracle.target_ids, oracle.target_xyz, cp_ids, cp_xyz).rmse_3d
+    assert ours <= 1.15 * ref, (ours, ref)
+    truth = {c["id"]: pose(c["cam_from_rig"]) for c in sim.truth["cameras"]}
+    R, t = calib.cam_from_rig["back"]
+    precision = calib.statistics["cameras"]["back"]["cam_from_rig_precision"]
+    rot_err = rotation_deg(R @ truth["back"][0].T)
+    t_err = float(np.linalg.norm(t - truth["back"][1]))
+    assert rot_err < 3.0 * precision["rotation_sigma_deg"], (rot_err, precision)
+    assert t_err < 3.0 * float(np.linalg.norm(precision["translation_sigma"])), (t_err, precision)
+
+
 def test_error_field_per_camera(tmp_path):
     """``error_field_px``: every camera's lens gets its own smooth field (at most the
     amplitude, never zero everywhere), the truth describes it, and the CLI takes it."""
@@ -242,3 +274,51 @@ def test_error_field_per_camera(tmp_path):
     assert main([*argv, "--error-field-px", "0.5", "-o", str(tmp_path)]) == 0
     truth = json.loads((tmp_path / "truth.json").read_text())
     assert truth["cameras"][0]["lens"]["kind"] == "error-field"
+
+
+def _pair(second_pose=None, second_id="right") -> tuple[RigCamera, RigCamera]:
+    """Two 200 deg equidistant fisheyes on 1024x1024 circles of radius 300 px."""
+    lens = make_lens("equidistant", 200.0, 1024, 1024, circle_radius_px=300.0)
+    shifted = (np.eye(3), np.array([-0.1, 0.0, 0.0]))
+    return (
+        RigCamera("left", lens, 1024, 1024, 200.0, (np.eye(3), np.zeros(3))),
+        RigCamera(second_id, lens, 1024, 1024, 200.0, second_pose or shifted),
+    )
+
+
+def test_a_rig_of_ones_own_cameras_is_simulated_with_its_name():
+    cams = _pair()
+    sim = simulate_rig(RigOptions(rig="my-pair", cameras=cams, n_frames=3, seed=4))
+    assert sim.truth["rig"] == "my-pair"
+    assert [c["id"] for c in sim.truth["cameras"]] == ["left", "right"]
+    assert sim.truth["options"]["cameras"] is None  # the cameras are the truth's own list
+    t = np.array(sim.truth["cameras"][1]["cam_from_rig"]["t"])
+    np.testing.assert_array_equal(t, [-0.1, 0.0, 0.0])
+    # every observation lies inside the 300 px circle, well inside the 1024 px sensor
+    for im in sim.dataset["images"]:
+        uv = np.array([o["uv"] for o in im["observations"]])
+        assert np.all(np.hypot(uv[:, 0] - 511.5, uv[:, 1] - 511.5) < 302.0)
+    # the same cameras as a zoo kind's: rig_cameras gives them, RigOptions takes both
+    zoo = rig_cameras("dual360-small-circle")
+    assert [c.id for c in zoo] == ["front", "back"]
+
+
+@pytest.mark.parametrize(
+    "cameras, message",
+    [
+        ((), "non-empty sequence"),
+        (("left",), r"cameras\[0\] must be a RigCamera"),
+        (_pair(second_id="left"), r"camera 'left' \(cameras\[1\]\): the id is used twice"),
+        (_pair()[::-1], r"camera 'right' \(cameras\[0\]\) is the rig frame"),
+        (_pair(second_pose=(2.0 * np.eye(3), np.zeros(3))), r"'right'.*not a rotation"),
+        (_pair(second_pose=(np.eye(3), np.zeros(2))), r"'right'.*got \(3, 3\) and \(2,\)"),
+    ],
+)
+def test_a_rig_of_ones_own_cameras_names_the_bad_camera(cameras, message):
+    with pytest.raises(ValueError, match=message):
+        simulate_rig(RigOptions(rig="bad", cameras=cameras, n_frames=2))
+
+
+def test_an_unknown_rig_kind_lists_the_zoo_kinds_too():
+    with pytest.raises(ValueError, match="dual360-small-circle"):
+        simulate_rig(RigOptions(rig="tripod"))

@@ -44,9 +44,11 @@ from .lenses import (
 )
 from .rigs import (
     RIG_KINDS,
+    ZOO_RIG_KINDS,
     RigCamera,
     RigOptions,
     RigSimulation,
+    check_rig_cameras,
     rig_cameras,
     simulate_rig,
     write_rig_simulation,
@@ -66,6 +68,7 @@ from .room import (
 __all__ = [
     "LENS_KINDS",
     "RIG_KINDS",
+    "ZOO_RIG_KINDS",
     "SCENES",
     "SIGMA_MODES",
     "DoubleSphere",
@@ -92,6 +95,7 @@ __all__ = [
     "make_lens",
     "nikon_like",
     "options_from_args",
+    "check_rig_cameras",
     "rig_cameras",
     "rig_options_from_args",
     "run_cli",
@@ -178,12 +182,15 @@ def add_cli_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParse
     )
     parser.add_argument(
         "--rig",
-        choices=list(RIG_KINDS),
+        choices=list(RIG_KINDS + ZOO_RIG_KINDS),
         default=None,
         help="simulate a camera rig moving through the room (dataset@2): stereo, dual360 "
         "(back-to-back 220 deg), ring4 (four outward cameras, no common field of view), "
-        "mixed (fisheye + 60 deg pinhole); with --seed, --noise-px, --frames, --n-targets, "
-        "--n-checkpoints, --checkpoint-noise-m, --target-sigma-m, --error-field-px",
+        "mixed (fisheye + 60 deg pinhole), or a lens zoo rig: dual360-small-circle, "
+        "catadioptric-stereo, double-sphere-stereo, fov-ring3, stereographic-pinhole, "
+        "cropped-stereo (gtsam_sphere.simulate.rigs says what each is); with --seed, "
+        "--noise-px, --frames, --n-targets, --n-checkpoints, --checkpoint-noise-m, "
+        "--target-sigma-m, --error-field-px",
     )
     parser.add_argument(
         "--frames", type=int, default=None, help="rigs: number of rig poses (default 12)"

@@ -25,6 +25,33 @@ Rigs (:data:`RIG_KINDS`):
     One 185 degree fisheye and one 60 degree pinhole with Brown distortion, 0.08 m
     apart, looking the same way.
 
+The lens zoo's rigs (:data:`ZOO_RIG_KINDS`, ``benchmarks/bench_rig.py --zoo``): lens
+families and image circles the four above do not have, 0.3 px of noise like them:
+
+``dual360-small-circle``
+    Two 250 degree equisolid fisheyes back to back on 1600x1600 sensors, each image
+    circle 0.32 of the short side (the issue-12 case that failed a single camera),
+    the second's principal point 12 and 10 px off centre.
+``catadioptric-stereo``
+    Two 220 degree unified (catadioptric) cameras, circles 0.4 of a 1280x960 sensor,
+    0.12 m apart.
+``double-sphere-stereo``
+    Two 240 degree double-sphere fisheyes, circles 0.45 of 1024x1024, 0.10 m apart,
+    diverging by 5 degrees.
+``fov-ring3``
+    Three 170 degree field-of-view-model lenses (``omega = 1.5``) on 1280x800, at 120
+    degree steps of heading on a ring of radius 5 cm.
+``stereographic-pinhole``
+    A 300 degree stereographic fisheye on a 0.3 circle of 1920x1080 and a 90 degree
+    pinhole with Brown terms (principal point 40 and 25 px off centre), 0.08 m apart.
+``cropped-stereo``
+    Two 200 degree Kannala-Brandt fisheyes whose circle (1.2 times the half diagonal
+    of 1280x800) the sensor crops, 0.11 m apart.
+
+Any other rig: ``RigOptions(rig="my-rig", cameras=(RigCamera(...), ...))`` with lenses
+from :func:`~gtsam_sphere.simulate.lenses.make_lens` (every family, field of view and
+image circle of the single-camera simulator).
+
 A frame's pose is redrawn until every camera sees at least
 ``preferred_targets_per_image`` targets (after 50 tries, at least
 ``min_targets_per_image``; after 300, the best pose found). A camera that still sees
@@ -62,17 +89,27 @@ from .room import (
 
 __all__ = [
     "RIG_KINDS",
+    "ZOO_RIG_KINDS",
     "RIG_DATASET_FORMAT",
     "RIG_TRUTH_FORMAT",
     "RigCamera",
     "RigOptions",
     "RigSimulation",
+    "check_rig_cameras",
     "rig_cameras",
     "simulate_rig",
     "write_rig_simulation",
 ]
 
 RIG_KINDS = ("stereo", "dual360", "ring4", "mixed")
+ZOO_RIG_KINDS = (
+    "dual360-small-circle",
+    "catadioptric-stereo",
+    "double-sphere-stereo",
+    "fov-ring3",
+    "stereographic-pinhole",
+    "cropped-stereo",
+)
 RIG_DATASET_FORMAT = "gtsam-sphere/dataset@2"
 RIG_TRUTH_FORMAT = "gtsam-sphere/truth@2"
 
@@ -114,6 +151,11 @@ class RigOptions:
     room : SimulationOptions
         The room (size, wall clearance, station heights, tilt, margins, facing and
         range limits); its lens, image size and counts are not used.
+    cameras : tuple of RigCamera or None
+        A rig of one's own: these cameras (the first is the rig frame: its
+        ``cam_from_rig`` is the identity; ids unique) instead of :func:`rig_cameras`,
+        and ``rig`` is only the rig's name (any non-empty string). None: the rig
+        ``rig`` of :data:`RIG_KINDS`.
     """
 
     rig: str = "stereo"
@@ -128,11 +170,19 @@ class RigOptions:
     preferred_targets_per_image: int = 20
     error_field_px: float = 0.0
     room: SimulationOptions = field(default_factory=SimulationOptions)
+    cameras: tuple[RigCamera, ...] | None = None
 
     def validate(self) -> None:
         """Raise ``ValueError`` naming the first inconsistent option."""
-        if self.rig not in RIG_KINDS:
-            raise ValueError(f"rig must be one of {RIG_KINDS}, got {self.rig!r}")
+        if self.cameras is None:
+            if self.rig not in RIG_KINDS + ZOO_RIG_KINDS:
+                raise ValueError(
+                    f"rig must be one of {RIG_KINDS + ZOO_RIG_KINDS}, got {self.rig!r}"
+                )
+        else:
+            check_rig_cameras(self.cameras)
+            if not isinstance(self.rig, str) or not self.rig:
+                raise ValueError(f"rig must name the rig (a non-empty string), got {self.rig!r}")
         if self.n_frames < 1 or self.n_targets < 1:
             raise ValueError("n_frames and n_targets must be positive")
         if self.noise_px < 0 or self.target_sigma_m < 0 or self.checkpoint_noise_m < 0:
@@ -172,6 +222,45 @@ class RigCamera:
     cam_from_rig: Pose
 
 
+def check_rig_cameras(cameras: Any) -> None:
+    """Raise ``ValueError`` naming the first camera of ``cameras`` that no rig can hold.
+
+    Parameters
+    ----------
+    cameras : sequence of RigCamera
+        At least one; ids unique non-empty strings; sizes and ``fov_deg`` positive; the
+        first camera's ``cam_from_rig`` the identity (the rig frame is its frame, as the
+        data contract says); every ``cam_from_rig`` a rotation (3, 3) and a
+        translation (3,), metres.
+    """
+    if not isinstance(cameras, list | tuple) or not cameras:
+        raise ValueError(f"cameras must be a non-empty sequence of RigCamera, got {cameras!r}")
+    seen: set[str] = set()
+    for k, cam in enumerate(cameras):
+        if not isinstance(cam, RigCamera):
+            raise ValueError(f"cameras[{k}] must be a RigCamera, got {type(cam).__name__}")
+        name = f"camera {cam.id!r} (cameras[{k}])"
+        if not isinstance(cam.id, str) or not cam.id:
+            raise ValueError(f"cameras[{k}] needs a non-empty string id, got {cam.id!r}")
+        if cam.id in seen:
+            raise ValueError(f"{name}: the id is used twice")
+        seen.add(cam.id)
+        if int(cam.width) < 1 or int(cam.height) < 1:
+            raise ValueError(f"{name}: image size must be positive, got {cam.width}x{cam.height}")
+        if not math.isfinite(cam.fov_deg) or cam.fov_deg <= 0:
+            raise ValueError(f"{name}: fov_deg must be positive, got {cam.fov_deg}")
+        R = np.asarray(cam.cam_from_rig[0], float)
+        t = np.asarray(cam.cam_from_rig[1], float)
+        if R.shape != (3, 3) or t.shape != (3,):
+            raise ValueError(
+                f"{name}: cam_from_rig must be (R (3, 3), t (3,)), got {R.shape} and {t.shape}"
+            )
+        if not np.allclose(R @ R.T, np.eye(3), atol=1e-9) or np.linalg.det(R) < 0:
+            raise ValueError(f"{name}: cam_from_rig's R is not a rotation")
+        if k == 0 and (not np.allclose(R, np.eye(3), atol=1e-12) or np.any(t != 0.0)):
+            raise ValueError(f"{name} is the rig frame: its cam_from_rig must be the identity")
+
+
 def _rotation(axis: Any, deg: float) -> np.ndarray:
     """Rotation matrix by ``deg`` degrees about ``axis`` (Rodrigues)."""
     a = np.asarray(axis, float) / np.linalg.norm(axis)
@@ -196,7 +285,7 @@ def rig_cameras(kind: str) -> list[RigCamera]:
     Parameters
     ----------
     kind : str
-        One of :data:`RIG_KINDS`.
+        One of :data:`RIG_KINDS` or :data:`ZOO_RIG_KINDS`.
 
     Returns
     -------
@@ -289,7 +378,146 @@ def rig_cameras(kind: str) -> list[RigCamera]:
                 _mount(_rotation([1.0, 0.3, 0.0], 1.0), [0.08, 0.0, 0.0]),
             ),
         ]
-    raise ValueError(f"rig must be one of {RIG_KINDS}, got {kind!r}")
+    if kind in ZOO_RIG_KINDS:
+        return _zoo_rig_cameras(kind)
+    raise ValueError(f"rig must be one of {RIG_KINDS + ZOO_RIG_KINDS}, got {kind!r}")
+
+
+def _unified_xi(fov_deg: float) -> float:
+    """The unified model's ``xi`` whose largest incidence ``acos(-1 / xi)`` leaves about
+    10 degrees of headroom past ``fov_deg / 2`` (as the lens zoo draws it)."""
+    return round(-1.0 / math.cos(math.radians(min(fov_deg / 2.0 + 10.0, 178.0))), 4)
+
+
+def _zoo_rig_cameras(kind: str) -> list[RigCamera]:
+    """The cameras of the zoo rig ``kind`` (:data:`ZOO_RIG_KINDS`, module docstring)."""
+    if kind == "dual360-small-circle":
+        w = h = 1600
+        r = 0.32 * min(w, h)
+        return [
+            RigCamera(
+                "front",
+                make_lens("equisolid", 250.0, w, h, circle_radius_px=r),
+                w,
+                h,
+                250.0,
+                _IDENTITY,
+            ),
+            RigCamera(
+                "back",
+                make_lens("equisolid", 250.0, w, h, circle_radius_px=r, cx=811.5, cy=809.5),
+                w,
+                h,
+                250.0,
+                _mount(_rotation([0.0, 1.0, 0.0], 180.0), [0.0, 0.0, -0.03]),
+            ),
+        ]
+    if kind == "catadioptric-stereo":
+        w, h, xi = 1280, 960, _unified_xi(220.0)
+        r = 0.4 * min(w, h)
+        return [
+            RigCamera(
+                "left",
+                make_lens("unified", 220.0, w, h, circle_radius_px=r, xi=xi),
+                w,
+                h,
+                220.0,
+                _IDENTITY,
+            ),
+            RigCamera(
+                "right",
+                make_lens("unified", 220.0, w, h, circle_radius_px=r, xi=xi, cx=650.0, cy=470.0),
+                w,
+                h,
+                220.0,
+                _mount(_rotation([0.2, 1.0, 0.1], -0.5), [0.12, 0.0, 0.0]),
+            ),
+        ]
+    if kind == "double-sphere-stereo":
+        w = h = 1024
+        r = 0.45 * min(w, h)
+        shape = {"xi": -0.1, "alpha": 0.52}
+        return [
+            RigCamera(
+                "left",
+                make_lens("double-sphere", 240.0, w, h, circle_radius_px=r, **shape),
+                w,
+                h,
+                240.0,
+                _IDENTITY,
+            ),
+            RigCamera(
+                "right",
+                make_lens("double-sphere", 240.0, w, h, circle_radius_px=r, **shape),
+                w,
+                h,
+                240.0,
+                _mount(_rotation([0.0, 1.0, 0.0], 5.0), [0.10, 0.0, 0.0]),
+            ),
+        ]
+    if kind == "fov-ring3":
+        w, h = 1280, 800
+        cams = []
+        for k, name in enumerate(("a", "b", "c")):
+            R = _rotation([0.0, 1.0, 0.0], 120.0 * k)
+            centre = 0.05 * R[:, 2] - 0.05 * np.array([0.0, 0.0, 1.0])  # ring of radius 5 cm
+            lens = make_lens("fov", 170.0, w, h, fill="diagonal", omega=1.5)
+            cams.append(
+                RigCamera(name, lens, w, h, 170.0, _IDENTITY if k == 0 else _mount(R, centre))
+            )
+        return cams
+    if kind == "stereographic-pinhole":
+        return [
+            RigCamera(
+                "fisheye",
+                make_lens("stereographic", 300.0, 1920, 1080, circle_radius_px=0.3 * 1080),
+                1920,
+                1080,
+                300.0,
+                _IDENTITY,
+            ),
+            RigCamera(
+                "pinhole",
+                make_lens(
+                    "pinhole",
+                    90.0,
+                    1280,
+                    960,
+                    fill="diagonal",
+                    k1=-0.1,
+                    k2=0.02,
+                    cx=679.5,
+                    cy=504.5,
+                ),
+                1280,
+                960,
+                90.0,
+                _mount(_rotation([1.0, 0.3, 0.0], 1.0), [0.08, 0.0, 0.0]),
+            ),
+        ]
+    if kind == "cropped-stereo":
+        w, h = 1280, 800
+        r = 1.2 * math.hypot(w / 2.0, h / 2.0)
+        shape = {"k1": 0.03, "k2": -0.008}
+        return [
+            RigCamera(
+                "left",
+                make_lens("kannala-brandt", 200.0, w, h, circle_radius_px=r, **shape),
+                w,
+                h,
+                200.0,
+                _IDENTITY,
+            ),
+            RigCamera(
+                "right",
+                make_lens("kannala-brandt", 200.0, w, h, circle_radius_px=r, **shape),
+                w,
+                h,
+                200.0,
+                _mount(_rotation([0.0, 1.0, 0.0], -3.0), [0.11, 0.0, 0.0]),
+            ),
+        ]
+    raise ValueError(f"zoo rig must be one of {ZOO_RIG_KINDS}, got {kind!r}")
 
 
 @dataclass
@@ -377,7 +605,7 @@ def simulate_rig(options: RigOptions | None = None) -> RigSimulation:
     options = options if options is not None else RigOptions()
     options.validate()
     rng = np.random.default_rng(options.seed)
-    cams = rig_cameras(options.rig)
+    cams = list(options.cameras) if options.cameras is not None else rig_cameras(options.rig)
     if options.error_field_px:
         cams = [
             replace(
@@ -487,7 +715,8 @@ def simulate_rig(options: RigOptions | None = None) -> RigSimulation:
         "units": "m",
         "rig": options.rig,
         "scene": "room",
-        "options": _jsonable(asdict(options)),
+        # a custom rig's cameras are the truth's "cameras" below (lens objects are no JSON)
+        "options": _jsonable(asdict(replace(options, cameras=None))),
         "cameras": [
             {
                 "id": cam.id,
