@@ -349,3 +349,50 @@ def test_a_322_deg_stereographic_lens_is_adjusted_in_a_warp_its_terms_follow():
     assert len(took) == 1, took
     oracle = oracle_calibration(sim, 466965369)
     assert _station_error_m(calib, sim) < 1.15 * _station_error_m(oracle, sim)
+
+
+def test_a_reverted_warp_is_not_tried_again_from_the_same_adjustment(monkeypatch):
+    """``select_warp`` with its ``reverted`` memo: the warp reverted from an adjustment
+    is not readjusted again from that adjustment (zoo seed 9 case 05 did it twice, 34 s),
+    but is from another one, and without the memo every call tries it."""
+    import types
+    from dataclasses import dataclass, field
+
+    import gtsam
+
+    import gtsam_sphere.estimation.calibrate as cal_mod
+    from gtsam_sphere.estimation.graph import INTRINSICS_KEY
+
+    @dataclass
+    class FakeProblem:
+        radial_warp: float | None = None
+        radial_names: tuple = ("g3",)
+        corrected_uv_px: np.ndarray = field(default_factory=lambda: np.zeros((4, 2)))
+
+        def intrinsics_names(self):
+            return ["xp_px", "yp_px", "c_px", "g3"]
+
+    def fake_adjustment():
+        values = gtsam.Values()
+        values.insert(INTRINSICS_KEY, np.array([320.0, 240.0, 300.0, 0.0]))
+        return types.SimpleNamespace(values=values, residuals_px=np.zeros((4, 2)), sigma_px=0.5)
+
+    calls, lines = [], []
+    monkeypatch.setattr(cal_mod, "_better_warp", lambda *a: (1.0, 0.1, 0.5, np.ones(4, bool)))
+    monkeypatch.setattr(cal_mod, "adjusted_points_cam", lambda *a: np.ones((4, 3)))
+    monkeypatch.setattr(cal_mod, "initial_radial", lambda *a: np.array([310.0, 0.1]))
+
+    def fake_readjust(problem, adj, *a):
+        calls.append(adj)
+        return types.SimpleNamespace(result=types.SimpleNamespace(status="converged"), sigma_px=0.9)
+
+    monkeypatch.setattr(cal_mod, "readjust", fake_readjust)
+    problem, first, other = FakeProblem(), fake_adjustment(), fake_adjustment()
+    memo: dict = {}
+    for adj in (first, first, other, other):
+        out_problem, out_adj = cal_mod.select_warp(problem, adj, None, lines.append, True, memo)
+        assert out_problem is problem and out_adj is adj  # reverted: sigma 0.9 against 0.5
+    assert calls == [first, other]
+    assert sum("tried from this adjustment and reverted: not again" in ln for ln in lines) == 2
+    cal_mod.select_warp(problem, first, None, lines.append, True)  # no memo: tried again
+    assert calls == [first, other, first]

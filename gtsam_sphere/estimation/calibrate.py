@@ -1311,10 +1311,11 @@ def _calibrate_once(
         first_stage_mask=inlier_mask,
         after_stage=stage_probe,
     )
+    reverted_warps: dict[float, Adjustment] = {}
     if stage_probe.fired:
         # the first adjustment stopped for a better warp: take it before anything else
         # adjusts this problem again
-        problem, adj = select_warp(problem, adj, opt, say, options.sigma_px is None)
+        problem, adj = select_warp(problem, adj, opt, say, options.sigma_px is None, reverted_warps)
     first_sigma_px = adj.sigma_px
     if first_sigma_limit_px is not None and first_sigma_px > first_sigma_limit_px:
         raise _FitsWorse(first_sigma_px)
@@ -1329,7 +1330,7 @@ def _calibrate_once(
             problem, adj, exact_targets, control_sigma, opt, say, options.sigma_px is None
         )
     if problem.fixed_intrinsics is None and options.model.uses_radial:
-        problem, adj = select_warp(problem, adj, opt, say, options.sigma_px is None)
+        problem, adj = select_warp(problem, adj, opt, say, options.sigma_px is None, reverted_warps)
     if options.select_terms and problem.fixed_intrinsics is None and _selects_terms(problem):
         problem, adj = select_terms(problem, adj, opt, say, options.sigma_px is None)
     history = adj.result.history
@@ -2172,6 +2173,7 @@ def select_warp(
     optimizer: OptimizerOptions,
     say: Callable[[str], None],
     estimate_sigma: bool = True,
+    reverted: dict[float, Adjustment] | None = None,
 ) -> tuple[BundleProblem, Adjustment]:
     """Choose the radial mapping's warp from the adjusted geometry (radial models).
 
@@ -2189,6 +2191,12 @@ def select_warp(
     that warp (all its terms refitted) and adjusted again, and kept only if the new
     adjustment's robust sigma is not worse than the old one.
 
+    ``reverted`` (filled here) maps each warp reverted to the adjustment it was tried
+    from: the same warp from the same adjustment is not tried again (the calibration
+    asks twice when the first adjustment stopped early for a warp; zoo seed 9 case 05,
+    a 150 deg pinhole with strong Brown terms, readjusted the same reverted warp twice,
+    34 s of 148).
+
     Returns
     -------
     (problem, adjustment)
@@ -2200,6 +2208,9 @@ def select_warp(
     if choice is None:
         return problem, adj
     w, best, now, keep = choice
+    if reverted is not None and reverted.get(w) is adj:
+        say(f"warp w = {w:.2f} was tried from this adjustment and reverted: not again")
+        return problem, adj
     current = float(problem.radial_warp or 0.0)
     theta = np.asarray(adj.values.atVector(INTRINSICS_KEY), float)
     names = list(problem.intrinsics_names())
@@ -2223,6 +2234,8 @@ def select_warp(
     why = rewarp_rejected(new.result.status, new.sigma_px, adj.sigma_px)
     if why:
         say(f"warp w = {w:.2f}: {why} (sigma {new.sigma_px:.4f} px): reverted")
+        if reverted is not None:
+            reverted[w] = adj
         return problem, adj
     return rewarped, new
 
