@@ -389,72 +389,51 @@ def _unified_xi(fov_deg: float) -> float:
     return round(-1.0 / math.cos(math.radians(min(fov_deg / 2.0 + 10.0, 178.0))), 4)
 
 
+def _twin(
+    names: tuple[str, str],
+    family: str,
+    fov_deg: float,
+    size: tuple[int, int],
+    radius_px: float,
+    second_from_rig: Pose,
+    second: dict[str, float] | None = None,
+    **shape: float,
+) -> list[RigCamera]:
+    """Two cameras of one lens ``family`` (``fov_deg``, image ``size``, circle of
+    ``radius_px``, ``shape`` options), the first at the rig frame, the second at
+    ``second_from_rig`` with the lens options ``second`` added (e.g. its own ``cx``)."""
+    w, h = size
+
+    def lens(extra):
+        return make_lens(family, fov_deg, w, h, circle_radius_px=radius_px, **shape, **extra)
+
+    return [
+        RigCamera(names[0], lens({}), w, h, fov_deg, _IDENTITY),
+        RigCamera(names[1], lens(second or {}), w, h, fov_deg, second_from_rig),
+    ]
+
+
 def _zoo_rig_cameras(kind: str) -> list[RigCamera]:
     """The cameras of the zoo rig ``kind`` (:data:`ZOO_RIG_KINDS`, module docstring)."""
+    stereo = ("left", "right")
     if kind == "dual360-small-circle":
-        w = h = 1600
-        r = 0.32 * min(w, h)
-        return [
-            RigCamera(
-                "front",
-                make_lens("equisolid", 250.0, w, h, circle_radius_px=r),
-                w,
-                h,
-                250.0,
-                _IDENTITY,
-            ),
-            RigCamera(
-                "back",
-                make_lens("equisolid", 250.0, w, h, circle_radius_px=r, cx=811.5, cy=809.5),
-                w,
-                h,
-                250.0,
-                _mount(_rotation([0.0, 1.0, 0.0], 180.0), [0.0, 0.0, -0.03]),
-            ),
-        ]
+        back = _mount(_rotation([0.0, 1.0, 0.0], 180.0), [0.0, 0.0, -0.03])
+        off_centre = {"cx": 811.5, "cy": 809.5}
+        return _twin(("front", "back"), "equisolid", 250.0, (1600, 1600), 0.32 * 1600, back,
+                     off_centre)  # fmt: skip
     if kind == "catadioptric-stereo":
-        w, h, xi = 1280, 960, _unified_xi(220.0)
-        r = 0.4 * min(w, h)
-        return [
-            RigCamera(
-                "left",
-                make_lens("unified", 220.0, w, h, circle_radius_px=r, xi=xi),
-                w,
-                h,
-                220.0,
-                _IDENTITY,
-            ),
-            RigCamera(
-                "right",
-                make_lens("unified", 220.0, w, h, circle_radius_px=r, xi=xi, cx=650.0, cy=470.0),
-                w,
-                h,
-                220.0,
-                _mount(_rotation([0.2, 1.0, 0.1], -0.5), [0.12, 0.0, 0.0]),
-            ),
-        ]
+        right = _mount(_rotation([0.2, 1.0, 0.1], -0.5), [0.12, 0.0, 0.0])
+        return _twin(stereo, "unified", 220.0, (1280, 960), 0.4 * 960, right,
+                     {"cx": 650.0, "cy": 470.0}, xi=_unified_xi(220.0))  # fmt: skip
     if kind == "double-sphere-stereo":
-        w = h = 1024
-        r = 0.45 * min(w, h)
-        shape = {"xi": -0.1, "alpha": 0.52}
-        return [
-            RigCamera(
-                "left",
-                make_lens("double-sphere", 240.0, w, h, circle_radius_px=r, **shape),
-                w,
-                h,
-                240.0,
-                _IDENTITY,
-            ),
-            RigCamera(
-                "right",
-                make_lens("double-sphere", 240.0, w, h, circle_radius_px=r, **shape),
-                w,
-                h,
-                240.0,
-                _mount(_rotation([0.0, 1.0, 0.0], 5.0), [0.10, 0.0, 0.0]),
-            ),
-        ]
+        right = _mount(_rotation([0.0, 1.0, 0.0], 5.0), [0.10, 0.0, 0.0])
+        return _twin(stereo, "double-sphere", 240.0, (1024, 1024), 0.45 * 1024, right,
+                     xi=-0.1, alpha=0.52)  # fmt: skip
+    if kind == "cropped-stereo":
+        right = _mount(_rotation([0.0, 1.0, 0.0], -3.0), [0.11, 0.0, 0.0])
+        radius = 1.2 * math.hypot(640.0, 400.0)  # 1.2x the half diagonal of 1280x800
+        return _twin(stereo, "kannala-brandt", 200.0, (1280, 800), radius, right,
+                     k1=0.03, k2=-0.008)  # fmt: skip
     if kind == "fov-ring3":
         w, h = 1280, 800
         cams = []
@@ -462,60 +441,17 @@ def _zoo_rig_cameras(kind: str) -> list[RigCamera]:
             R = _rotation([0.0, 1.0, 0.0], 120.0 * k)
             centre = 0.05 * R[:, 2] - 0.05 * np.array([0.0, 0.0, 1.0])  # ring of radius 5 cm
             lens = make_lens("fov", 170.0, w, h, fill="diagonal", omega=1.5)
-            cams.append(
-                RigCamera(name, lens, w, h, 170.0, _IDENTITY if k == 0 else _mount(R, centre))
-            )
+            pose = _IDENTITY if k == 0 else _mount(R, centre)
+            cams.append(RigCamera(name, lens, w, h, 170.0, pose))
         return cams
     if kind == "stereographic-pinhole":
+        fisheye = make_lens("stereographic", 300.0, 1920, 1080, circle_radius_px=0.3 * 1080)
+        pinhole = make_lens("pinhole", 90.0, 1280, 960, fill="diagonal", k1=-0.1, k2=0.02,
+                            cx=679.5, cy=504.5)  # fmt: skip
+        pinhole_from_rig = _mount(_rotation([1.0, 0.3, 0.0], 1.0), [0.08, 0.0, 0.0])
         return [
-            RigCamera(
-                "fisheye",
-                make_lens("stereographic", 300.0, 1920, 1080, circle_radius_px=0.3 * 1080),
-                1920,
-                1080,
-                300.0,
-                _IDENTITY,
-            ),
-            RigCamera(
-                "pinhole",
-                make_lens(
-                    "pinhole",
-                    90.0,
-                    1280,
-                    960,
-                    fill="diagonal",
-                    k1=-0.1,
-                    k2=0.02,
-                    cx=679.5,
-                    cy=504.5,
-                ),
-                1280,
-                960,
-                90.0,
-                _mount(_rotation([1.0, 0.3, 0.0], 1.0), [0.08, 0.0, 0.0]),
-            ),
-        ]
-    if kind == "cropped-stereo":
-        w, h = 1280, 800
-        r = 1.2 * math.hypot(w / 2.0, h / 2.0)
-        shape = {"k1": 0.03, "k2": -0.008}
-        return [
-            RigCamera(
-                "left",
-                make_lens("kannala-brandt", 200.0, w, h, circle_radius_px=r, **shape),
-                w,
-                h,
-                200.0,
-                _IDENTITY,
-            ),
-            RigCamera(
-                "right",
-                make_lens("kannala-brandt", 200.0, w, h, circle_radius_px=r, **shape),
-                w,
-                h,
-                200.0,
-                _mount(_rotation([0.0, 1.0, 0.0], -3.0), [0.11, 0.0, 0.0]),
-            ),
+            RigCamera("fisheye", fisheye, 1920, 1080, 300.0, _IDENTITY),
+            RigCamera("pinhole", pinhole, 1280, 960, 90.0, pinhole_from_rig),
         ]
     raise ValueError(f"zoo rig must be one of {ZOO_RIG_KINDS}, got {kind!r}")
 
