@@ -123,7 +123,7 @@ class RigOptions:
     Attributes
     ----------
     rig : str
-        One of :data:`RIG_KINDS`.
+        One of :data:`RIG_KINDS` or :data:`ZOO_RIG_KINDS`; with ``cameras``, any name.
     n_frames : int
         Number of rig poses (frames).
     noise_px : float
@@ -155,7 +155,7 @@ class RigOptions:
         A rig of one's own: these cameras (the first is the rig frame: its
         ``cam_from_rig`` is the identity; ids unique) instead of :func:`rig_cameras`,
         and ``rig`` is only the rig's name (any non-empty string). None: the rig
-        ``rig`` of :data:`RIG_KINDS`.
+        ``rig`` of :data:`RIG_KINDS` or :data:`ZOO_RIG_KINDS`.
     """
 
     rig: str = "stereo"
