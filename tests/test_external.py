@@ -696,6 +696,38 @@ def test_levenberg_marquardt_status_means_what_optimize_means():
     assert info["iterations"] == 1
 
 
+def _cubic_graph(sigma):
+    """One unknown x, residual ``(x^3 - 1) / sigma``: from x = 0.05 the Gauss-Newton
+    step overshoots by thousands, and the damping that makes it a descent step grows
+    as ``1 / sigma^2`` (whitened curvature)."""
+    key = gtsam.symbol("x", 0)
+
+    def residual(this, values, H):
+        x = values.atVector(key)[0]
+        if H is not None:
+            H[0] = np.asfortranarray([[3.0 * x * x]])
+        return np.array([x**3 - 1.0])
+
+    graph = gtsam.NonlinearFactorGraph()
+    graph.add(gtsam.CustomFactor(gtsam.noiseModel.Isotropic.Sigma(1, sigma), [key], residual))
+    start = gtsam.Values()
+    start.insert(key, np.array([0.05]))
+    return graph, start, key
+
+
+def test_optimize_damps_as_far_as_the_whitened_curvature_needs():
+    """GTSAM's default lambdaUpperBound (1e5) is below the damping a precise residual
+    needs (zoo stress 2912 s15: every robust stage stalled at 0.1 px); optimize() gives
+    up at OptimizerOptions.lambda_upper_bound (1e10) instead."""
+    graph, start, key = _cubic_graph(1e-5)
+    stalled = optimize(graph, start, OptimizerOptions(lambda_upper_bound=1e5))
+    assert stalled.status is LMStatus.STALLED and not stalled.converged
+    assert stalled.values.atVector(key)[0] == 0.05  # no step was taken
+    assert OptimizerOptions().lambda_upper_bound == 1e10
+    result = optimize(graph, start, OptimizerOptions(max_iterations=500))
+    assert result.converged and result.values.atVector(key)[0] == pytest.approx(1.0, abs=1e-6)
+
+
 def test_levenberg_marquardt_solves_what_cholesky_finds_indeterminate():
     """A radial mapping of six terms fitted over 0-58 and 122-131 deg of incidence (the
     rays a 262 deg sphere lens shows on a sensor smaller than its fold): the Jacobian's

@@ -132,9 +132,9 @@ def print_statistics(stats: dict) -> None:
     if "n_targets" in stats:
         rows.append(
             (
-                "targets adjusted / undetermined / weak",
-                f"{stats['n_targets']} / {stats.get('n_targets_undetermined', 0)} / "
-                f"{stats.get('n_targets_weak', 0)}",
+                "targets adjusted / undetermined (of them unreliable) / weak",
+                f"{stats['n_targets']} / {stats.get('n_targets_undetermined', 0)} "
+                f"({stats.get('n_targets_unreliable', 0)}) / {stats.get('n_targets_weak', 0)}",
             )
         )
     rows += [

@@ -55,6 +55,7 @@ from .calibrate import (
     LOST_TO_OUTLIERS_REASON,
     MIN_SIGMA_PX,
     OUTLIER_SHARE,
+    UNRELIABLE_TAG,
     CalibrationOptions,
     Distrust,
     calibrate,
@@ -1192,6 +1193,11 @@ def assemble_rig(
         "n_images_skipped": int(sum(calibs[c].statistics["n_images_skipped"] for c in ids)),
         "n_targets": len(target_ids),
         "n_targets_undetermined": len(jr.undetermined_targets) if jr is not None else 0,
+        "n_targets_unreliable": sum(
+            why.endswith(UNRELIABLE_TAG) for why in jr.undetermined_reasons.values()
+        )
+        if jr is not None
+        else 0,
         "n_targets_weak": int(np.sum(jr.target_precision.get("weak", []))) if jr is not None else 0,
         "weak_target_limit": jr.weak_target_limit if jr is not None else None,
         "converged": all(calibs[c].statistics["converged"] for c in ids)
@@ -1361,8 +1367,9 @@ def run_cli(args, base: CalibrationOptions, progress: Callable[[str], None] | No
                 )
         print(line)
     print(
-        f"  targets adjusted / undetermined / weak: {st['n_targets']} / "
-        f"{st.get('n_targets_undetermined', 0)} / {st.get('n_targets_weak', 0)}"
+        f"  targets adjusted / undetermined (of them unreliable) / weak: {st['n_targets']} / "
+        f"{st.get('n_targets_undetermined', 0)} ({st.get('n_targets_unreliable', 0)}) / "
+        f"{st.get('n_targets_weak', 0)}"
     )
     for note in st.get("warnings", []):
         logger.warning("%s", note)

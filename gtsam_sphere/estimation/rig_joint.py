@@ -56,9 +56,11 @@ from .calibrate import (
     CAUCHY_MIN_FRACTION,
     LOST_TO_OUTLIERS_REASON,
     UNFIXED_REASON,
+    UNRELIABLE_REASON,
     targets_extent,
     terms_to_drop,
     unfixed_targets,
+    unreliable_targets,
     weak_targets,
 )
 from .correct import blunders, train_correction
@@ -1072,6 +1074,34 @@ def adjust_rig_jointly(
     if cov_t is not None:
         full = np.sqrt(np.maximum(np.linalg.eigvalsh(cov_t)[:, -1], 0.0))
         full[np.isfinite(sigma) & (sigma == 0)] = 0.0
+    # targets that two rays place far from their approximate coordinates (the single
+    # camera's rule, calibrate.unreliable_targets), in the approximate coordinates' datum
+    to_datum = 1.0 if datum_sim is None else datum_sim.scale
+    in_datum = xyz_solver.copy()
+    if datum_sim is not None:
+        in_datum[free] = datum_sim.apply(in_datum[free])
+    misfit = np.linalg.norm(in_datum - np.asarray(rig.target_xyz, float), axis=1)
+    good_image_all, good_target_all = np.concatenate(good_image), np.concatenate(good_target)
+    unreliable, reference = unreliable_targets(
+        good_image_all,
+        good_target_all,
+        np.ones(len(good_image_all), bool),
+        observed & ~lost & ~np.isfinite(sigma),
+        misfit,
+        to_datum * (meet if full is None else full),
+    )
+    for j in np.flatnonzero(unreliable).tolist():
+        reasons[j] = UNRELIABLE_REASON.format(
+            misfit=misfit[j], reference=reference, units=rig.units
+        )
+    if unreliable.any():
+        notes.append(
+            f"{int(unreliable.sum())} targets seen in two images only are far from their "
+            "approximate coordinates (two rays cannot tell a mislabel from the target): "
+            "left out of the targets"
+        )
+    lost |= unreliable
+    used = np.flatnonzero(observed & ~lost)
     weak_limit, weak = weak_targets(xyz_solver[used], (meet if full is None else full)[used])
     if weak.any():
         notes.append(
