@@ -1033,3 +1033,31 @@ def test_a_knn_field_that_moves_the_cameras_is_not_trusted():
     assert st["station_shift_vs_reference"] > STATION_SHIFT_LIMIT
     assert not st["trusted"]
     assert any("moves the cameras" in r for r in st["distrust"]), st["distrust"]
+
+
+def test_a_principal_point_known_to_several_degrees_is_not_trusted():
+    """calibrate.imprecise_principal_point: zoo stress 3002 s04 (7 images, 180
+    observations of a free room at 1.5 px) had a principal point sigma of 33 / 39 px at
+    c = 867 px (2.55 deg), was 151 px off and trusted at 6.3x the oracle's 3D error."""
+    from gtsam_sphere.estimation.calibrate import (
+        PRINCIPAL_POINT_SIGMA_LIMIT_DEG,
+        imprecise_principal_point,
+    )
+
+    names = ["xp_px", "yp_px", "c_px", "g3"]
+    c_px = 867.0
+    limit_px = c_px * np.tan(np.radians(PRINCIPAL_POINT_SIGMA_LIMIT_DEG))
+
+    def cov(sx, sy):
+        return np.diag([sx**2, sy**2, 18.9**2, 1e-4])
+
+    why = imprecise_principal_point(cov(33.0, 38.6), names, c_px)
+    assert "33.0 / 38.6 px" in why and "2.55 deg" in why and "more images" in why
+    assert imprecise_principal_point(cov(1.01 * limit_px, 1.0), names, c_px)
+    assert imprecise_principal_point(cov(1.0, 1.01 * limit_px), names, c_px)
+    assert imprecise_principal_point(cov(0.99 * limit_px, 0.99 * limit_px), names, c_px) == ""
+    # the same sigma in pixels is a smaller angle behind a longer principal distance
+    assert imprecise_principal_point(cov(33.0, 38.6), names, 4 * c_px) == ""
+    # nothing to judge: no covariance, or a model without a principal point
+    assert imprecise_principal_point(None, names, c_px) == ""
+    assert imprecise_principal_point(np.eye(2), ["c_px", "g3"], c_px) == ""

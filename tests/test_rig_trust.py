@@ -353,6 +353,7 @@ def test_the_joint_adjustment_settles_only_what_it_redoes():
         str(Distrust.FOLD),
         str(Distrust.KNN_UNSTABLE),
         str(Distrust.OUTLIERS),
+        str(Distrust.IMPRECISE),
     }
     ok = SimpleNamespace(result=SimpleNamespace(converged=True), intrinsics_sigma={"p": {}})
     split = {"n_images_joint_only": 3}
@@ -373,6 +374,20 @@ def test_the_joint_adjustment_settles_only_what_it_redoes():
     assert not _joint_determines("p", split, failed)
     singular = SimpleNamespace(result=SimpleNamespace(converged=True), intrinsics_sigma={"p": None})
     assert not _joint_determines("p", split, singular)
+    # an imprecise principal point only when the joint one is within the limit (2 deg)
+    camera = SimpleNamespace(c=500.0)
+
+    def joint(sigma_px):
+        return SimpleNamespace(
+            result=SimpleNamespace(converged=True),
+            intrinsics_sigma={"p": {"xp_px": 1.0, "yp_px": sigma_px}},
+            cameras={"p": camera},
+        )
+
+    imprecise = str(Distrust.IMPRECISE)
+    assert _joint_settles_reason("p", imprecise, split, joint(17.0))  # 1.95 deg
+    assert not _joint_settles_reason("p", imprecise, split, joint(18.0))  # 2.06 deg
+    assert not _joint_settles_reason("p", imprecise, {}, joint(1.0))  # it saw all its images
 
 
 @pytest.mark.slow  # a two-camera rig of 8 frames, ~9 s

@@ -2569,6 +2569,7 @@ class Distrust(StrEnum):
     OUTLIERS = "outliers"
     KNN_UNSTABLE = "knn-unstable"
     SIGMA_GROWTH = "sigma-growth"
+    IMPRECISE = "imprecise"
     REFERENCE_FIT = "reference-fit"
     REFERENCE_STATIONS = "reference-stations"
 
@@ -2665,6 +2666,51 @@ def fold_off_sensor(camera, n_azimuths: int = 72) -> bool:
     return not bool(camera.inside_image(uv).any())
 
 
+#: a calibration whose principal point's sigma (the larger of ``xp``'s and ``yp``'s,
+#: seen from the principal distance) exceeds this angle is not trusted: the optical
+#: axis is then unknown to several degrees (zoo stress 3002 s04: 7 images, 180
+#: observations of a free room at 1.5 px, 2.55 deg, the principal point 151 px off,
+#: trusted at 6.3x the oracle's 3D error; the next largest of 80 stress cases was 1.07
+#: deg, at 1.00x)
+PRINCIPAL_POINT_SIGMA_LIMIT_DEG = 2.0
+
+
+def imprecise_principal_point(cov_theta, names, c_px: float) -> str:
+    """Why the principal point is too poorly determined to trust ("" when it is not).
+
+    Parameters
+    ----------
+    cov_theta : ndarray, shape (K, K), or None
+        Covariance of the intrinsics (px^2 for ``xp_px``, ``yp_px``).
+    names : sequence of str, length K
+        Their names (:meth:`BundleProblem.intrinsics_names`).
+    c_px : float
+        Principal distance (px).
+
+    Returns
+    -------
+    str
+        The reason, naming the sigmas (px) and the angle (deg) against
+        :data:`PRINCIPAL_POINT_SIGMA_LIMIT_DEG`.
+    """
+    names = list(names)
+    if cov_theta is None or "xp_px" not in names or "yp_px" not in names or not c_px > 0:
+        return ""
+    cov = np.asarray(cov_theta, float)
+    sx, sy = (
+        float(np.sqrt(max(cov[k, k], 0.0))) for k in (names.index("xp_px"), names.index("yp_px"))
+    )
+    angle_deg = float(np.degrees(np.arctan2(max(sx, sy), c_px)))
+    if not angle_deg > PRINCIPAL_POINT_SIGMA_LIMIT_DEG:
+        return ""
+    return (
+        f"the principal point is poorly determined: sigma {sx:.1f} / {sy:.1f} px (x / y), "
+        f"{angle_deg:.2f} deg of the field (limit {PRINCIPAL_POINT_SIGMA_LIMIT_DEG:g} deg); "
+        "capture more images, with the target across the whole field and at several "
+        "distances and tilts"
+    )
+
+
 def distrust_reasons(
     calib: Calibration,
     cov_theta,
@@ -2680,8 +2726,10 @@ def distrust_reasons(
     equations (an intrinsic parameter not determined by the data); a radial
     mapping that stops increasing inside the observed field (it would fold the
     image); more than :data:`OUTLIER_SHARE` of the observations beyond 5 sigma; a kNN
-    loop that ran out of rounds (``knn_stable`` False); an estimated robust sigma above
-    :data:`SIGMA_GROWTH` times ``first_sigma_px``, the first adjustment's (px).
+    loop that ran out of rounds (``knn_stable`` False); a principal point whose sigma
+    exceeds :data:`PRINCIPAL_POINT_SIGMA_LIMIT_DEG` (:func:`imprecise_principal_point`);
+    an estimated robust sigma above :data:`SIGMA_GROWTH` times ``first_sigma_px``, the
+    first adjustment's (px).
     """
     st = calib.statistics
     out = []
@@ -2738,6 +2786,10 @@ def distrust_reasons(
                 "its rounds (options.knn max_rounds)",
             )
         )
+    if problem.fixed_intrinsics is None:
+        why = imprecise_principal_point(cov_theta, problem.intrinsics_names(), cam.c)
+        if why:
+            out.append((Distrust.IMPRECISE, why))
     growth = st["sigma_px"] / first_sigma_px if first_sigma_px else 0.0
     if options.sigma_px is None and growth > SIGMA_GROWTH:
         # every later step (warp, terms, shape prior, kNN) is kept only when it fits at

@@ -55,6 +55,7 @@ from .calibrate import (
     LOST_TO_OUTLIERS_REASON,
     MIN_SIGMA_PX,
     OUTLIER_SHARE,
+    PRINCIPAL_POINT_SIGMA_LIMIT_DEG,
     UNRELIABLE_TAG,
     CalibrationOptions,
     Distrust,
@@ -898,6 +899,22 @@ def _explain_outliers(cid: str, statistics: dict, jr, camera_stats: dict) -> str
     )
 
 
+def _joint_principal_point_precise(cid: str, statistics: dict, jr) -> bool:
+    """Camera ``cid``'s principal point sigma in the joint adjustment is within
+    ``calibrate.PRINCIPAL_POINT_SIGMA_LIMIT_DEG`` of its principal distance."""
+    sig = jr.intrinsics_sigma.get(cid) or {}
+    c = float(jr.cameras[cid].c)
+    if "xp_px" not in sig or "yp_px" not in sig or not c > 0:
+        return False
+    worst = max(sig["xp_px"], sig["yp_px"])
+    return bool(np.degrees(np.arctan2(worst, c)) <= PRINCIPAL_POINT_SIGMA_LIMIT_DEG)
+
+
+def _explain_precise(cid: str, statistics: dict, jr, camera_stats: dict) -> str:
+    sig = jr.intrinsics_sigma[cid]
+    return f"; jointly its principal point's sigma is {sig['xp_px']:.1f} / {sig['yp_px']:.1f} px"
+
+
 #: the reasons not to trust a camera's own adjustment (:class:`Distrust` codes) that the
 #: joint adjustment settles, for a camera its own adjustment saw part of the data of (its
 #: largest group of images, :func:`largest_connected_part`; a seed on approximate
@@ -921,12 +938,16 @@ def _explain_outliers(cid: str, statistics: dict, jr, camera_stats: dict) -> str
 #:   seed 9, kept 85 of its 275 observations alone, fitted them to 0.020 px, and 11 were
 #:   "beyond 5 sigma" (0.1 px); jointly its scale is 0.29 px, its cam_from_rig within 3
 #:   sigma.
+#: - ``imprecise`` (a principal point sigma beyond
+#:   ``calibrate.PRINCIPAL_POINT_SIGMA_LIMIT_DEG``): moreover the joint one is within it
+#:   (:func:`_joint_principal_point_precise`).
 JOINT_SETTLE_RULES: dict[str, JointSettle] = {
     str(Distrust.NOT_CONVERGED): JointSettle(_always, _nothing_to_add),
     str(Distrust.SINGULAR): JointSettle(_always, _nothing_to_add),
     str(Distrust.FOLD): JointSettle(_joint_unfolds, _explain_unfolds),
     str(Distrust.KNN_UNSTABLE): JointSettle(_fitted_exactly, _explain_exact),
     str(Distrust.OUTLIERS): JointSettle(_joint_outlier_share_ok, _explain_outliers),
+    str(Distrust.IMPRECISE): JointSettle(_joint_principal_point_precise, _explain_precise),
 }
 
 
