@@ -132,3 +132,24 @@ def initialise_simulation(sim):
         progress=messages.append,
     )
     return data, res, messages
+
+
+def small_free_room(seed=21):
+    """A free room (no target sigma) of 10 images, 150 targets, 150 deg equidistant lens
+    on 1024x768, 0.3 px: the end-to-end case of the target-reliability tests."""
+    from gtsam_sphere.simulate import SimulationOptions, simulate_room
+
+    return simulate_room(
+        SimulationOptions(
+            lens="equidistant",
+            fov_deg=150,
+            noise_px=0.3,
+            n_images=10,
+            n_targets=150,
+            n_checkpoints=10,
+            width=1024,
+            height=768,
+            sigma_mode="free",
+            seed=seed,
+        )
+    )

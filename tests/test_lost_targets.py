@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from helpers import dataset_doc
+from helpers import dataset_doc, small_free_room
 
 from gtsam_sphere.core.geometry import (
     MISFIT_LIMIT,
@@ -112,22 +112,8 @@ def test_free_room_with_a_blunder_keeps_its_scale_and_lists_the_lost_target():
     network keeps its size (camera centres within centimetres of the truth after the
     datum transform) and the file round-trips the list."""
     from gtsam_sphere.estimation.calibrate import CalibrationOptions, calibrate
-    from gtsam_sphere.simulate import SimulationOptions, simulate_room
 
-    sim = simulate_room(
-        SimulationOptions(
-            lens="equidistant",
-            fov_deg=150,
-            noise_px=0.3,
-            n_images=10,
-            n_targets=150,
-            n_checkpoints=10,
-            width=1024,
-            height=768,
-            sigma_mode="free",
-            seed=21,
-        )
-    )
+    sim = small_free_room(21)
     doc = sim.dataset
     seen: dict[str, list] = {}
     for im in doc["images"]:

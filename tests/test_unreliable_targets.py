@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from helpers import small_free_room
 
 from gtsam_sphere.estimation.calibrate import (
     UNRELIABLE_MISFIT_FACTOR,
@@ -78,25 +79,6 @@ def test_outliers_do_not_count_as_rays():
     assert unreliable_targets(image, target, good, judge, misfit)[0][3]
 
 
-def _room(seed=21):
-    from gtsam_sphere.simulate import SimulationOptions, simulate_room
-
-    return simulate_room(
-        SimulationOptions(
-            lens="equidistant",
-            fov_deg=150,
-            noise_px=0.3,
-            n_images=10,
-            n_targets=150,
-            n_checkpoints=10,
-            width=1024,
-            height=768,
-            sigma_mode="free",
-            seed=seed,
-        )
-    )
-
-
 @pytest.mark.slow
 def test_a_target_whose_two_rays_are_mislabels_is_left_out_and_named():
     """End to end: a free room where a target seen in two images is, in both, labelled on
@@ -106,7 +88,7 @@ def test_a_target_whose_two_rays_are_mislabels_is_left_out_and_named():
     from gtsam_sphere.estimation.calibrate import CalibrationOptions, calibrate
     from gtsam_sphere.io.dataset import parse_dataset
 
-    sim = _room()
+    sim = small_free_room()
     doc = sim.dataset
     victim, other = _mislabel_a_two_ray_target(doc)
     calib = calibrate(parse_dataset(doc, "room.json"), CalibrationOptions())
@@ -125,7 +107,7 @@ def test_a_clean_free_room_has_no_unreliable_target():
     from gtsam_sphere.estimation.calibrate import CalibrationOptions, calibrate
     from gtsam_sphere.io.dataset import parse_dataset
 
-    sim = _room()
+    sim = small_free_room()
     calib = calibrate(parse_dataset(sim.dataset, "room.json"), CalibrationOptions())
     assert calib.statistics["n_targets_unreliable"] == 0
     assert calib.statistics["n_targets_undetermined"] == 0
