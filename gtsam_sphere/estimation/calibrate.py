@@ -1074,11 +1074,9 @@ def unreliable_targets(
     misfit = np.asarray(misfit, float)
     good = np.asarray(good, bool)
     n_targets = len(judge)
-    seen = np.unique(
-        np.asarray(obs_target)[good] * (int(np.max(obs_image, initial=0)) + 1)
-        + np.asarray(obs_image)[good]
-    )
-    n_images = np.bincount(seen // (int(np.max(obs_image, initial=0)) + 1), minlength=n_targets)
+    stride = int(np.max(obs_image, initial=0)) + 1  # one code per (target, image) pair
+    pairs = np.unique(np.asarray(obs_target)[good] * stride + np.asarray(obs_image)[good])
+    n_images = np.bincount(pairs // stride, minlength=n_targets)
     reference = judge & (n_images >= 3) & np.isfinite(misfit)
     out = np.zeros(n_targets, bool)
     if reference.sum() < 3:
