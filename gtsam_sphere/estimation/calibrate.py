@@ -2673,6 +2673,12 @@ def fold_off_sensor(camera, n_azimuths: int = 72) -> bool:
 PRINCIPAL_POINT_SIGMA_LIMIT_DEG = 2.0
 
 
+def principal_point_sigma_deg(sx_px: float, sy_px: float, c_px: float) -> float:
+    """The principal point's sigma as an angle (deg): the larger of ``sx_px`` and
+    ``sy_px`` (px) seen from the principal distance ``c_px`` (px)."""
+    return float(np.degrees(np.arctan2(max(sx_px, sy_px), c_px)))
+
+
 def imprecise_principal_point(cov_theta, names, c_px: float) -> str:
     """Why the principal point is too poorly determined to trust ("" when it is not).
 
@@ -2698,7 +2704,7 @@ def imprecise_principal_point(cov_theta, names, c_px: float) -> str:
     sx, sy = (
         float(np.sqrt(max(cov[k, k], 0.0))) for k in (names.index("xp_px"), names.index("yp_px"))
     )
-    angle_deg = float(np.degrees(np.arctan2(max(sx, sy), c_px)))
+    angle_deg = principal_point_sigma_deg(sx, sy, c_px)
     if not angle_deg > PRINCIPAL_POINT_SIGMA_LIMIT_DEG:
         return ""
     return (

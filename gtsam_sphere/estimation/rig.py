@@ -60,6 +60,7 @@ from .calibrate import (
     CalibrationOptions,
     Distrust,
     calibrate,
+    principal_point_sigma_deg,
     targets_extent,
 )
 from .diagnose import ProblemCode, image_groups
@@ -906,8 +907,8 @@ def _joint_principal_point_precise(cid: str, statistics: dict, jr) -> bool:
     c = float(jr.cameras[cid].c)
     if "xp_px" not in sig or "yp_px" not in sig or not c > 0:
         return False
-    worst = max(sig["xp_px"], sig["yp_px"])
-    return bool(np.degrees(np.arctan2(worst, c)) <= PRINCIPAL_POINT_SIGMA_LIMIT_DEG)
+    angle_deg = principal_point_sigma_deg(sig["xp_px"], sig["yp_px"], c)
+    return angle_deg <= PRINCIPAL_POINT_SIGMA_LIMIT_DEG
 
 
 def _explain_precise(cid: str, statistics: dict, jr, camera_stats: dict) -> str:
