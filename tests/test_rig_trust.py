@@ -354,6 +354,7 @@ def test_the_joint_adjustment_settles_only_what_it_redoes():
         str(Distrust.KNN_UNSTABLE),
         str(Distrust.OUTLIERS),
         str(Distrust.IMPRECISE),
+        str(Distrust.LOW_REDUNDANCY),
     }
     ok = SimpleNamespace(result=SimpleNamespace(converged=True), intrinsics_sigma={"p": {}})
     split = {"n_images_joint_only": 3}
@@ -388,6 +389,23 @@ def test_the_joint_adjustment_settles_only_what_it_redoes():
     assert _joint_settles_reason("p", imprecise, split, joint(17.0))  # 1.95 deg
     assert not _joint_settles_reason("p", imprecise, split, joint(18.0))  # 2.06 deg
     assert not _joint_settles_reason("p", imprecise, {}, joint(1.0))  # it saw all its images
+    # a low mean redundancy number when the joint graph's is at least the limit (1/3),
+    # also for a camera that saw all its images alone: the other cameras' rays add it
+    low = str(Distrust.LOW_REDUNDANCY)
+
+    def redundant(mean, converged=True, sigma=True):
+        return SimpleNamespace(
+            result=SimpleNamespace(converged=converged),
+            intrinsics_sigma={"p": {} if sigma else None},
+            mean_redundancy=mean,
+        )
+
+    for own in ({}, split):
+        assert _joint_settles_reason("p", low, own, redundant(0.34))
+        assert not _joint_settles_reason("p", low, own, redundant(0.33))
+    assert not _joint_settles_reason("p", low, {}, redundant(0.9, converged=False))
+    assert not _joint_settles_reason("p", low, {}, redundant(0.9, sigma=False))
+    assert not _joint_settles_reason("p", low, {}, None)
 
 
 @pytest.mark.slow  # a two-camera rig of 8 frames, ~9 s

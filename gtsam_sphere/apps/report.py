@@ -89,6 +89,7 @@ _STAT_ROWS: tuple[tuple[str, str], ...] = (
     ("cost", "final cost"),
     ("weighted_sum_squares", "weighted sum of squares"),
     ("redundancy", "redundancy"),
+    ("mean_redundancy", "mean redundancy number"),
     ("variance_factor", "a-posteriori variance factor"),
     ("max_incidence_deg", "largest incidence angle (deg)"),
     ("fov_deg", "field of view covered (deg)"),

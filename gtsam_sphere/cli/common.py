@@ -125,7 +125,11 @@ def print_statistics(stats: dict) -> None:
         ("systematic (>5 sigma, like neighbours)", f"{stats.get('n_systematic', 0)}"),
         ("sigma (px)", f"{stats['sigma_px']:.4f}"),
         ("weighted sum of squares", f"{stats['weighted_sum_squares']:.4e}"),
-        ("redundancy", f"{stats['redundancy']}"),
+        (
+            "redundancy (mean redundancy number)",
+            f"{stats['redundancy']}"
+            + (f" ({stats['mean_redundancy']:.2f})" if "mean_redundancy" in stats else ""),
+        ),
         ("a-posteriori variance factor", f"{stats['variance_factor']:.4f}"),
         ("largest incidence angle (deg)", f"{stats['max_incidence_deg']:.1f}"),
     ]

@@ -53,6 +53,7 @@ from ..io.calibration import Calibration, RigCalibration
 from ..io.dataset import Dataset, DatasetError, RigDataset, read_json, split_rig
 from .calibrate import (
     LOST_TO_OUTLIERS_REASON,
+    MIN_MEAN_REDUNDANCY,
     MIN_SIGMA_PX,
     OUTLIER_SHARE,
     PRINCIPAL_POINT_SIGMA_LIMIT_DEG,
@@ -60,6 +61,7 @@ from .calibrate import (
     CalibrationOptions,
     Distrust,
     calibrate,
+    low_redundancy,
     principal_point_sigma_deg,
     targets_extent,
 )
@@ -847,15 +849,16 @@ def _joint_widens(statistics: dict) -> bool:
     return statistics.get("n_undetermined_observations", 0) >= JOINT_WIDENS_FRACTION * kept > 0
 
 
-def _joint_determines(cid: str, statistics: dict, jr) -> bool:
+def _joint_covers(cid: str, jr) -> bool:
     """The joint adjustment ``jr`` converged with a covariance of camera ``cid``'s
-    intrinsics, and the camera was calibrated alone on part of its images only."""
-    return (
-        jr is not None
-        and _saw_part_alone(statistics)
-        and jr.result.converged
-        and jr.intrinsics_sigma.get(cid) is not None
-    )
+    intrinsics."""
+    return jr is not None and jr.result.converged and jr.intrinsics_sigma.get(cid) is not None
+
+
+def _joint_determines(cid: str, statistics: dict, jr) -> bool:
+    """:func:`_joint_covers`, and the camera was calibrated alone on part of its images
+    only."""
+    return _saw_part_alone(statistics) and _joint_covers(cid, jr)
 
 
 @dataclass(frozen=True)
@@ -869,6 +872,9 @@ class JointSettle:
 
     holds: Callable[[str, dict, object], bool]
     explain: Callable[[str, dict, object, dict], str]
+    #: False: also for a camera its own adjustment saw all the data of (the reason is
+    #: about what the other cameras' rays add, not about the images it left out)
+    part_only: bool = True
 
 
 def _always(cid: str, statistics: dict, jr) -> bool:
@@ -916,6 +922,16 @@ def _explain_precise(cid: str, statistics: dict, jr, camera_stats: dict) -> str:
     return f"; jointly its principal point's sigma is {sig['xp_px']:.1f} / {sig['yp_px']:.1f} px"
 
 
+def _joint_redundant(cid: str, statistics: dict, jr) -> bool:
+    """The joint adjustment's mean redundancy number is at least
+    ``calibrate.MIN_MEAN_REDUNDANCY``."""
+    return bool(jr.mean_redundancy >= MIN_MEAN_REDUNDANCY)
+
+
+def _explain_redundant(cid: str, statistics: dict, jr, camera_stats: dict) -> str:
+    return f"; jointly the mean redundancy number is {jr.mean_redundancy:.2f}"
+
+
 #: the reasons not to trust a camera's own adjustment (:class:`Distrust` codes) that the
 #: joint adjustment settles, for a camera its own adjustment saw part of the data of (its
 #: largest group of images, :func:`largest_connected_part`; a seed on approximate
@@ -942,6 +958,13 @@ def _explain_precise(cid: str, statistics: dict, jr, camera_stats: dict) -> str:
 #: - ``imprecise`` (a principal point sigma beyond
 #:   ``calibrate.PRINCIPAL_POINT_SIGMA_LIMIT_DEG``): moreover the joint one is within it
 #:   (:func:`_joint_principal_point_precise`).
+#: - ``low-redundancy`` (a mean redundancy number below
+#:   ``calibrate.MIN_MEAN_REDUNDANCY``), also for a camera that saw all its images alone:
+#:   the other cameras' rays to its targets add redundancy its own adjustment lacks (a
+#:   stereo pair of a free network that sees each target in two frames per camera: two
+#:   rays alone, four jointly); settled when the joint graph's mean is at least the
+#:   limit (:func:`_joint_redundant`). The joint graph's own mean below the limit is a
+#:   reason not to trust the rig.
 JOINT_SETTLE_RULES: dict[str, JointSettle] = {
     str(Distrust.NOT_CONVERGED): JointSettle(_always, _nothing_to_add),
     str(Distrust.SINGULAR): JointSettle(_always, _nothing_to_add),
@@ -949,6 +972,9 @@ JOINT_SETTLE_RULES: dict[str, JointSettle] = {
     str(Distrust.KNN_UNSTABLE): JointSettle(_fitted_exactly, _explain_exact),
     str(Distrust.OUTLIERS): JointSettle(_joint_outlier_share_ok, _explain_outliers),
     str(Distrust.IMPRECISE): JointSettle(_joint_principal_point_precise, _explain_precise),
+    str(Distrust.LOW_REDUNDANCY): JointSettle(
+        _joint_redundant, _explain_redundant, part_only=False
+    ),
 }
 
 
@@ -956,11 +982,13 @@ def _joint_settles_reason(cid: str, code: str | None, statistics: dict, jr) -> b
     """The joint adjustment ``jr`` settles camera ``cid``'s own reason ``code``
     (:data:`JOINT_SETTLE_RULES`)."""
     rule = JOINT_SETTLE_RULES.get(code)
-    return (
-        rule is not None
-        and _joint_determines(cid, statistics, jr)
-        and rule.holds(cid, statistics, jr)
-    )
+    if rule is None:
+        return False
+    if rule.part_only:
+        determines = _joint_determines(cid, statistics, jr)
+    else:
+        determines = _joint_covers(cid, jr)
+    return determines and rule.holds(cid, statistics, jr)
 
 
 def assemble_rig(
@@ -1161,12 +1189,17 @@ def assemble_rig(
         codes = st.get("distrust_codes", [None] * len(st.get("distrust", [])))
         for code, reason in zip(codes, st.get("distrust", [])):
             if _joint_settles_reason(cid, code, st, jr):
-                how = JOINT_SETTLE_RULES[code].explain(cid, st, jr, camera_stats)
+                rule = JOINT_SETTLE_RULES[code]
+                how = rule.explain(cid, st, jr, camera_stats)
+                alone = (
+                    "its own adjustment on part of its data (its largest group of images, "
+                    "or the targets it saw twice)"
+                    if rule.part_only
+                    else "its own adjustment, without the other cameras' rays"
+                )
                 settled.append(
-                    f"camera {cid!r}: its own adjustment on part of its data (its largest "
-                    f"group of images, or the targets it saw twice): {reason}; the joint "
-                    f"adjustment, with the rest, converged and determines its "
-                    f"intrinsics{how}"
+                    f"camera {cid!r}: {alone}: {reason}; the joint adjustment, with the "
+                    f"rest, converged and determines its intrinsics{how}"
                 )
             else:
                 distrust.append(f"camera {cid!r}: {reason}")
@@ -1179,6 +1212,16 @@ def assemble_rig(
             )
     if jr is not None and not jr.result.converged:
         distrust.append(f"the joint rig adjustment did not converge ({jr.result.describe()})")
+    if jr is not None:
+        why = low_redundancy(
+            {
+                "redundancy": jr.redundancy,
+                "n_observations": sum(len(r) for r in jr.residuals_px.values()),
+                "mean_redundancy": jr.mean_redundancy,
+            }
+        )
+        if why:
+            distrust.append(f"the joint rig adjustment: {why}")
     for cid, usable in (jr.unestimated_scales if jr is not None else {}).items():
         distrust.append(
             f"camera {cid!r}: only {usable} of its observations carry the noise in the "
@@ -1253,6 +1296,7 @@ def assemble_rig(
             "loss": jr.loss,
             "variance_factor": jr.variance_factor,
             "redundancy": jr.redundancy,
+            "mean_redundancy": jr.mean_redundancy,
         }
     return RigCalibration(
         camera_ids=list(ids),

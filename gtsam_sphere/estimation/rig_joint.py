@@ -57,6 +57,7 @@ from .calibrate import (
     LOST_TO_OUTLIERS_REASON,
     UNFIXED_REASON,
     UNRELIABLE_REASON,
+    mean_redundancy,
     targets_extent,
     terms_to_drop,
     unfixed_targets,
@@ -352,6 +353,9 @@ class JointRigResult:
         A-posteriori variance factor ``sum(w (e / sigma)^2) / redundancy``.
     redundancy : int
         ``2 N + 3 (weighted targets) + 7 (free network) - unknowns``.
+    mean_redundancy : float
+        ``redundancy / (2 N + 3 (weighted targets))``, the mean redundancy number
+        (:func:`~gtsam_sphere.estimation.calibrate.mean_redundancy`).
     notes : list of str
         What the adjustment left out or could not compute (no covariance).
     undetermined_targets : list of str
@@ -404,6 +408,7 @@ class JointRigResult:
     datum: str = ""
     variance_factor: float = float("nan")
     redundancy: int = 0
+    mean_redundancy: float = float("nan")
     notes: list[str] = field(default_factory=list)
     unsettled_scales: list[str] = field(default_factory=list)
     n_outliers: dict[str, int] = field(default_factory=dict)
@@ -1203,6 +1208,7 @@ def adjust_rig_jointly(
         datum=datum_problem.datum.value,
         variance_factor=float(variance_factor),
         redundancy=int(redundancy),
+        mean_redundancy=mean_redundancy(redundancy, len(obs_target), n_priors),
         notes=notes,
         unestimated_scales=dict(held),
         n_outliers=n_outliers,
