@@ -37,13 +37,15 @@ the exception, never the end of the sweep.
     python benchmarks/bench_lens_zoo.py --quick [--json out.json]
     python benchmarks/bench_lens_zoo.py --only double-sphere
     python benchmarks/bench_lens_zoo.py --stress 40 --seed 101   # random draws, see below
-    python benchmarks/bench_lens_zoo.py --stress 40 --seed 211 --targets [--defects]
+    python benchmarks/bench_lens_zoo.py --stress 40 --seed 211 --targets [--defects] [--shapes]
 
 ``--stress N`` replaces the list with N random draws (:func:`build_stress_cases`):
 image sizes from 640x480, noise up to 1.5 px, up to 5 % blunders, 8 to 60 images and
 pinholes from 40 degrees; ``--defects`` adds sensor defects (affinity, shear,
 decentering) to every lens, ``--targets`` draws how the dataset states its targets
-(weighted, free, exact), a moving pupil and an error field. The summary counts the
+(weighted, free, exact), a moving pupil and an error field, ``--shapes`` each family's
+shape parameters (:data:`SHAPE_RANGES`: Brown terms, k1-k4, xi, alpha, omega; the lists
+use one fixed set per field of view). The summary counts the
 results trusted but over
 :data:`SILENT_RATIO` times the oracle and the family oracle (and, with an error field,
 the field-blind oracle).
@@ -322,8 +324,56 @@ STRESS_PUPIL_M = (0.001, 0.004)
 STRESS_FIELD_PX = (0.5, 2.0)
 
 
+#: ``--shapes``: the shape parameters of each family drawn uniform in these ranges
+#: (instead of :func:`_family_options`' fixed ones), redrawn until the lens reaches the
+#: case's field of view monotonically (``simulate.make_lens`` accepts it), at most
+#: :data:`SHAPE_TRIES` times (then the fixed ones). Pinhole: barrel to mild pincushion
+#: Brown terms; Kannala-Brandt: k1-k4 of the size calibrated fisheyes report (Kalibr's
+#: ``pinhole-equi``, OpenCV's ``fisheye``); unified: ``xi`` from near-pinhole to past
+#: the field's limit (``acos(-1 / xi)`` 5-20 deg beyond the half field past 180
+#: deg); double sphere: around Usenko et al.'s (2018) calibrated values; FOV model:
+#: ``omega`` across the range the family reaches the field with.
+SHAPE_RANGES: dict[str, dict[str, tuple[float, float]]] = {
+    "pinhole": {"k1": (-0.4, 0.1), "k2": (-0.05, 0.15), "k3": (-0.02, 0.02)},
+    "kannala-brandt": {
+        "k1": (-0.05, 0.1),
+        "k2": (-0.03, 0.03),
+        "k3": (-0.01, 0.01),
+        "k4": (-0.002, 0.002),
+    },
+    "unified": {"xi": (0.2, 1.6)},
+    "double-sphere": {"xi": (-0.35, 0.15), "alpha": (0.45, 0.75)},
+    "fov": {"omega": (0.4, 2.6)},
+}
+SHAPE_TRIES = 30
+
+
+def _draw_shape(family: str, fov: float, rng: np.random.Generator) -> tuple[dict, bool]:
+    """Shape parameters of ``family`` for a field of view ``fov`` (deg) drawn from
+    :data:`SHAPE_RANGES`; ``(options, drawn)``, ``drawn`` False when no draw reached the
+    field (the fixed :func:`_family_options` are returned)."""
+    from gtsam_sphere.simulate.lenses import make_lens
+
+    ranges = SHAPE_RANGES.get(family)
+    if not ranges:
+        return _family_options(family, fov), False
+    for _ in range(SHAPE_TRIES):
+        opts = {k: round(float(rng.uniform(lo, hi)), 5) for k, (lo, hi) in ranges.items()}
+        if family == "unified" and fov > 180.0:
+            # the unified model sees to acos(-1 / xi) (xi > 1): 5-20 deg past the half
+            # field (the fixed options: 10 deg)
+            reach_deg = min(fov / 2.0 + float(rng.uniform(5.0, 20.0)), 179.0)
+            opts["xi"] = round(-1.0 / math.cos(math.radians(reach_deg)), 5)
+        try:
+            make_lens(family, fov, 1000, 1000, circle_radius_px=400.0, **opts)
+        except ValueError:
+            continue
+        return opts, True
+    return _family_options(family, fov), False
+
+
 def build_stress_cases(
-    seed: int, n: int, defects: bool = False, targets: bool = False
+    seed: int, n: int, defects: bool = False, targets: bool = False, shapes: bool = False
 ) -> list[Case]:
     """``n`` random cases beyond the lists of :func:`build_cases` (same seed, same cases).
 
@@ -349,6 +399,9 @@ def build_stress_cases(
         (:data:`STRESS_TARGETS`: weighted, free or exact), a moving entrance pupil
         (:data:`STRESS_PUPIL_M`) and a smooth error field (:data:`STRESS_FIELD_PX`);
         ids gain ``-t<mode>`` (``w``, ``f``, ``x``) and ``p``/``e`` for a pupil/field.
+    shapes : bool
+        Also draw, from a fourth stream, the family's shape parameters
+        (:data:`SHAPE_RANGES`, :func:`_draw_shape`); ids gain ``-s`` where drawn.
 
     Returns
     -------
@@ -358,6 +411,7 @@ def build_stress_cases(
     rng = np.random.default_rng([seed, 0x57E55])
     defect_rng = np.random.default_rng([seed, 0xDEFEC7])
     target_rng = np.random.default_rng([seed, 0x7A26E7])
+    shape_rng = np.random.default_rng([seed, 0x5A9E5])
     cases: list[Case] = []
     families = list(FAMILIES)
     for i in range(n):
@@ -375,10 +429,13 @@ def build_stress_cases(
         blunders = STRESS_BLUNDERS[int(rng.integers(len(STRESS_BLUNDERS)))]
         lens_options = _family_options(family, fov)
         suffix = ""
+        if shapes:
+            lens_options, drawn = _draw_shape(family, fov, shape_rng)
+            suffix = "-s" if drawn else ""
         if defects:
             for name, bound in STRESS_DEFECTS.items():
                 lens_options[name] = round(float(defect_rng.uniform(-bound, bound)), 6)
-            suffix = "-d"
+            suffix += "-d"
         sigma_mode = target_sigma_m = None
         pupil_m = field_px = 0.0
         if targets:
@@ -805,16 +862,22 @@ def main(argv: list[str] | None = None) -> int:
         help="with --stress: draw how targets are stated (weighted, free, exact), a moving "
         "pupil and an error field",
     )
+    ap.add_argument(
+        "--shapes",
+        action="store_true",
+        help="with --stress: draw each family's shape parameters (Brown terms, k1-k4, xi, "
+        "alpha, omega) instead of the fixed ones",
+    )
     ap.add_argument("--list", action="store_true", help="list the cases and exit")
     ap.add_argument("--json", default=None, metavar="OUT", help="save the rows as JSON")
     ap.add_argument("--verbose", action="store_true", help="echo calibration progress")
     ap.add_argument("--workdir", default=None, help="keep the simulated files here")
     args = ap.parse_args(argv)
 
-    if (args.defects or args.targets) and not args.stress:
-        ap.error("--defects and --targets need --stress N")
+    if (args.defects or args.targets or args.shapes) and not args.stress:
+        ap.error("--defects, --targets and --shapes need --stress N")
     cases = (
-        build_stress_cases(args.seed, args.stress, args.defects, args.targets)
+        build_stress_cases(args.seed, args.stress, args.defects, args.targets, args.shapes)
         if args.stress
         else build_cases(args.seed)
     )

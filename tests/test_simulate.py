@@ -442,6 +442,34 @@ def test_lens_zoo_case_list_builds(monkeypatch):
         assert all(abs(v) <= zoo.STRESS_DEFECTS[k] for k, v in extra.items())
         assert (p.seed, p.noise_px, p.fov_deg) == (b.seed, b.noise_px, b.fov_deg)
         build_lens(b.options())
+    # drawn shape parameters: the same draws otherwise, within their ranges, reaching
+    # the field (the fixed ones where no draw did, without the "-s")
+    drawn = zoo.build_stress_cases(205, 80, shapes=True)
+    fixed = zoo.build_stress_cases(205, 80)
+    assert [c.id.removesuffix("-s") for c in drawn] == [c.id for c in fixed]
+    seen: dict[str, set] = {}
+    for d, f in zip(drawn, fixed):
+        assert (d.seed, d.noise_px, d.fov_deg, d.family) == (
+            f.seed,
+            f.noise_px,
+            f.fov_deg,
+            f.family,
+        )
+        build_lens(d.options())
+        ranges = zoo.SHAPE_RANGES.get(d.family)
+        if not ranges or not d.id.endswith("-s"):
+            assert d.lens_options == f.lens_options
+            continue
+        assert set(d.lens_options) == set(ranges)
+        for k, (lo, hi) in ranges.items():
+            if d.family == "unified" and d.fov_deg > 180.0:
+                # past 180 deg xi is set by how far past the half field the lens sees
+                reach = math.degrees(math.acos(-1.0 / d.lens_options["xi"]))
+                assert d.fov_deg / 2 + 5.0 <= reach + 1e-6 <= d.fov_deg / 2 + 20.0 + 1e-6
+            else:
+                assert lo <= d.lens_options[k] <= hi
+        seen.setdefault(d.family, set()).add(tuple(sorted(d.lens_options.items())))
+    assert set(seen) == set(zoo.SHAPE_RANGES) and all(len(v) >= 2 for v in seen.values())
 
 
 @pytest.mark.slow  # three end-to-end adjustments
