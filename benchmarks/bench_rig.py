@@ -40,6 +40,7 @@ fisheye with a pinhole, full-frame circles the sensor crops.
 
     python benchmarks/bench_rig.py --quick                 # 6 frames, 2 seeds
     python benchmarks/bench_rig.py --zoo --seeds 1         # the zoo's rigs
+    python benchmarks/bench_rig.py --random 12 --seed 5    # drawn rigs and lenses
     python benchmarks/bench_rig.py [--frames 12] [--seed 1] [--seeds 2] [--only ring4]
                                    [--model radial] [--max-iterations 400]
                                    [--no-oracle] [--json out.json]
@@ -61,20 +62,35 @@ import tempfile  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
+import gtsam  # noqa: E402
 import numpy as np  # noqa: E402
 
 from gtsam_sphere import load_calibration  # noqa: E402
 from gtsam_sphere.analysis.evaluate import evaluate_checkpoints  # noqa: E402
 from gtsam_sphere.cli import main as cli_main  # noqa: E402
+from gtsam_sphere.core.errors import GtsamSphereError  # noqa: E402
 from gtsam_sphere.io.dataset import load_checkpoints  # noqa: E402
 from gtsam_sphere.simulate import (  # noqa: E402
     RIG_KINDS,
     ZOO_RIG_KINDS,
+    RigCamera,
     RigOptions,
     simulate_rig,
     write_rig_simulation,
 )
+from gtsam_sphere.simulate.lenses import make_lens  # noqa: E402
 from gtsam_sphere.simulate.oracle import oracle_rig_calibration  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import bench_lens_zoo as zoo  # noqa: E402  (the lens draws of the stress cases)
+
+#: ``--random``: layouts of a drawn rig, with the field of view each needs (deg): a
+#: forward-looking pair or trio (baseline 6-20 cm, a few degrees apart), two lenses back
+#: to back, a ring of 3-4 around the vertical (5 cm radius) whose neighbours overlap
+RANDOM_LAYOUTS = {"forward": 40.0, "back-to-back": 190.0, "ring": None}
+#: ``--random``: a drawn rig that the simulator cannot frame (a camera that sees too few
+#: targets in every frame) is drawn again, at most this many times
+RANDOM_TRIES = 20
 
 
 def _pose(doc) -> tuple[np.ndarray, np.ndarray]:
@@ -127,11 +143,105 @@ def _references(sim, calib_ids, cp_ids, cp_xyz, scale: float) -> dict:
     return out
 
 
-def run_rig(kind: str, args: argparse.Namespace, work: Path, seed: int | None = None) -> dict:
+def _rig_from_cam(yaw_deg: float, pitch_deg: float, roll_deg: float) -> np.ndarray:
+    """``rig_from_cam`` rotation ``Rz(roll) Ry(yaw) Rx(pitch)``: yaw about the rig's y
+    (down) axis turns the camera's axis (z) in the horizontal plane."""
+    angles = np.radians([pitch_deg, yaw_deg, roll_deg])
+    return gtsam.Rot3.RzRyRx(*angles).matrix()
+
+
+def _draw_lens(rng: np.random.Generator, fov_min: float):
+    """One lens of the stress draws (family, field of view, image size, circle, principal
+    point within 5 %, shape parameters of :data:`bench_lens_zoo.SHAPE_RANGES`) whose
+    field of view is at least ``fov_min`` deg; ``(lens, width, height, fov, label)``."""
+    families = [f for f, fovs in zoo.FAMILIES.items() if max(fovs) >= fov_min]
+    family = families[int(rng.integers(len(families)))]
+    fovs = zoo.FAMILIES[family]
+    low = max(fov_min, 40.0 if family == "pinhole" else min(fovs))
+    fov = float(np.round(rng.uniform(low, max(fovs))))
+    width, height = zoo.STRESS_SIZES[int(rng.integers(len(zoo.STRESS_SIZES)))]
+    circles = zoo.STRESS_CIRCLES if fov < 180.0 else zoo.STRESS_CIRCLES[1:]
+    circle = circles[int(rng.integers(len(circles)))]
+    radius = None
+    if circle is not None:
+        radius = circle * (min(width, height) if circle < 1.0 else np.hypot(width, height) / 2)
+    shape, _ = zoo._draw_shape(family, fov, rng)
+    cx = (width - 1) / 2.0 + float(rng.uniform(-0.05, 0.05)) * width
+    cy = (height - 1) / 2.0 + float(rng.uniform(-0.05, 0.05)) * height
+    lens = make_lens(family, fov, width, height, circle_radius_px=radius, cx=cx, cy=cy, **shape)
+    return lens, width, height, fov, f"{family}-{fov:g}"
+
+
+def draw_random_rig(rng: np.random.Generator) -> tuple[str, list[RigCamera]]:
+    """A rig of 2-4 drawn cameras in one of :data:`RANDOM_LAYOUTS`, each lens drawn as
+    the lens zoo's stress cases draw theirs (the same lens on every camera half the
+    time); ``(label, cameras)``."""
+    layout = list(RANDOM_LAYOUTS)[int(rng.integers(len(RANDOM_LAYOUTS)))]
+    if layout == "back-to-back":
+        n = 2
+    elif layout == "ring":
+        n = int(rng.integers(3, 5))
+    else:
+        n = int(rng.choice([2, 2, 3]))
+    fov_min = RANDOM_LAYOUTS[layout] or 360.0 / n + 40.0
+    twin = rng.uniform() < 0.5
+    first = _draw_lens(rng, fov_min)
+    cams, labels = [], []
+    for k in range(n):
+        lens, w, h, fov, label = first if (twin or k == 0) else _draw_lens(rng, fov_min)
+        labels.append(label)
+        if layout == "forward":
+            yaw = float(rng.uniform(-8.0, 8.0))
+            R = _rig_from_cam(yaw, float(rng.uniform(-3, 3)), float(rng.uniform(-3, 3)))
+            centre = np.array([k * float(rng.uniform(0.06, 0.20)), 0.0, 0.0])
+        else:
+            yaw = 360.0 * k / n + (float(rng.uniform(-5.0, 5.0)) if k else 0.0)
+            R = _rig_from_cam(yaw, float(rng.uniform(-3, 3)) if k else 0.0, 0.0)
+            radius = 0.03 if layout == "back-to-back" else 0.05
+            centre = radius * R[:, 2] - radius * np.array([0.0, 0.0, 1.0])
+        if k == 0:
+            R, centre = np.eye(3), np.zeros(3)
+        cams.append(RigCamera(f"c{k}", lens, w, h, fov, (R.T, -R.T @ centre)))
+    kind = labels[0] if twin else "mixed"
+    return f"{layout}{n}-{kind}", cams
+
+
+def random_rigs(seed: int, n: int, frames: int) -> list[tuple[str, list[RigCamera]]]:
+    """``n`` drawn rigs (:func:`draw_random_rig`) from ``seed``, each one the simulator
+    can frame in ``frames`` frames (drawn again otherwise, :data:`RANDOM_TRIES`);
+    labels ``rNN-layout-lens``."""
+    rng = np.random.default_rng([seed, 0x216])
+    out = []
+    for i in range(n):
+        for _ in range(RANDOM_TRIES):
+            label, cams = draw_random_rig(rng)
+            try:
+                simulate_rig(RigOptions(rig=label, cameras=tuple(cams), n_frames=frames, seed=1))
+            except (GtsamSphereError, ValueError):
+                continue
+            out.append((f"r{i:02d}-{label}", cams))
+            break
+    return out
+
+
+def run_rig(
+    kind: str,
+    args: argparse.Namespace,
+    work: Path,
+    seed: int | None = None,
+    cameras: list[RigCamera] | None = None,
+) -> dict:
     """Simulate, calibrate through the command line, compare with the truth (and the
-    oracle and the known-family adjustment unless ``--no-oracle``)."""
+    oracle and the known-family adjustment unless ``--no-oracle``); ``cameras``: a rig
+    of one's own named ``kind``."""
     seed = args.seed if seed is None else seed
-    opts = RigOptions(rig=kind, n_frames=args.frames, seed=seed, noise_px=args.noise_px)
+    opts = RigOptions(
+        rig=kind,
+        n_frames=args.frames,
+        seed=seed,
+        noise_px=args.noise_px,
+        cameras=None if cameras is None else tuple(cameras),
+    )
     sim = simulate_rig(opts)
     paths = write_rig_simulation(sim, work / kind)
     out = work / kind / "calib.json"
@@ -339,6 +449,14 @@ def main(argv: list[str] | None = None) -> int:
         help="the lens zoo's rigs (small circles, catadioptric, double sphere, FOV ring, "
         "300 deg + pinhole, cropped circles) instead of the four base rigs",
     )
+    p.add_argument(
+        "--random",
+        type=int,
+        default=0,
+        metavar="N",
+        help="N drawn rigs instead (2-4 cameras forward, back to back or in a ring, each "
+        "lens drawn as the lens zoo's stress cases with --shapes), from --seed",
+    )
     p.add_argument("--only", default=None, help="comma-separated rigs")
     p.add_argument("--model", default=None, help="calibrate --model (default: the CLI's)")
     p.add_argument("--max-iterations", type=int, default=None, help="calibrate --max-iterations")
@@ -349,13 +467,24 @@ def main(argv: list[str] | None = None) -> int:
     kinds = (
         (ZOO_RIG_KINDS if args.zoo else RIG_KINDS) if not args.only else tuple(args.only.split(","))
     )
+    drawn: dict[str, list[RigCamera]] = {}
+    if args.random:
+        drawn = dict(random_rigs(args.seed, args.random, args.frames))
+        wanted = args.only.split(",") if args.only else None
+        kinds = tuple(k for k in drawn if wanted is None or any(o in k for o in wanted))
+        for kind in kinds:
+            lenses = "; ".join(
+                f"{c.id} {c.lens.to_dict()['kind']} {c.fov_deg:g} deg {c.width}x{c.height}"
+                for c in drawn[kind]
+            )
+            print(f"{kind}: {lenses}", file=sys.stderr, flush=True)
     runs = []
     seeds = list(range(args.seed, args.seed + max(1, args.seeds)))
     with tempfile.TemporaryDirectory() as tmp:
         for kind in kinds:
             for seed in seeds:
                 t0 = time.perf_counter()
-                runs.append(run_rig(kind, args, Path(tmp) / f"s{seed}", seed))
+                runs.append(run_rig(kind, args, Path(tmp) / f"s{seed}", seed, drawn.get(kind)))
                 print(
                     f"done {kind} seed {seed} ({time.perf_counter() - t0:.0f} s)",
                     file=sys.stderr,

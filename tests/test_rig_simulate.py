@@ -322,3 +322,33 @@ def test_a_rig_of_ones_own_cameras_names_the_bad_camera(cameras, message):
 def test_an_unknown_rig_kind_lists_the_zoo_kinds_too():
     with pytest.raises(ValueError, match="dual360-small-circle"):
         simulate_rig(RigOptions(rig="tripod"))
+
+
+def test_the_rig_benchmark_draws_rigs_the_simulator_frames():
+    """``bench_rig.py --random``: the same seed draws the same rigs; each has 2-4
+    cameras, the first at the rig frame, lenses of the zoo's families that reach their
+    field, and the simulator frames it."""
+    import importlib.util
+    import sys
+    from pathlib import Path
+
+    bench = Path(__file__).resolve().parents[1] / "benchmarks"
+    spec = importlib.util.spec_from_file_location("bench_rig", bench / "bench_rig.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    a, b = module.random_rigs(5, 4, 6), module.random_rigs(5, 4, 6)
+    assert [label for label, _ in a] == [label for label, _ in b]
+    assert len(a) == 4 and len({label for label, _ in a}) == 4
+    for label, cams in a:
+        assert 2 <= len(cams) <= 4 and label.startswith("r")
+        R0, t0 = cams[0].cam_from_rig
+        np.testing.assert_allclose(R0, np.eye(3), atol=1e-12)
+        np.testing.assert_allclose(t0, 0.0, atol=1e-12)
+        for cam in cams[1:]:
+            R, _ = cam.cam_from_rig
+            np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-9)
+        families = {cam.lens.to_dict()["kind"] for cam in cams}
+        assert families <= set(module.zoo.FAMILIES) | {"sphere"}
+        sim = simulate_rig(RigOptions(rig=label, cameras=tuple(cams), n_frames=6, seed=1))
+        assert {im["camera"] for im in sim.dataset["images"]} == {c.id for c in cams}
