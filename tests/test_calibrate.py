@@ -548,6 +548,51 @@ def test_the_initial_radial_mapping_starts_from_sane_coefficients():
     assert cg[0] > 0 and np.count_nonzero(cg[1:]) < n_terms  # fewer terms, zero-padded
 
 
+def test_the_first_radial_start_keeps_its_coefficients_of_order_one():
+    """From the initial poses the radial start drops terms until every coefficient is at
+    most ``RADIAL_FIRST_START_MAX`` (stress 3103 --shapes s11: six terms fitted about as
+    well as four with c = 2.5 px and g up to 175, and every stage crawled to its cap);
+    a lens one term describes keeps all its terms when they are small."""
+    from gtsam_sphere.core.camera import ALPHA0_RAD
+    from gtsam_sphere.estimation.calibrate import (
+        RADIAL_FIRST_START_MAX,
+        RADIAL_START_MAX,
+        _fit_radial,
+        initial_radial,
+    )
+
+    rng = np.random.default_rng(5)
+    alpha = rng.uniform(0.6, 2.4, 2000)  # 34 to 138 deg: nothing near the axis
+    az = rng.uniform(-np.pi, np.pi, alpha.size)
+    points_cam = np.column_stack(
+        [np.sin(alpha) * np.cos(az), np.sin(alpha) * np.sin(az), np.cos(alpha)]
+    )
+    pp = np.array([640.0, 400.0])
+    t = alpha / ALPHA0_RAD
+
+    def observe(r_true, noise_px):
+        r_obs = r_true + rng.normal(0.0, noise_px, alpha.size)
+        return r_obs, pp + r_obs[:, None] * np.column_stack([np.cos(az), np.sin(az)])
+
+    # a mapping whose slope on the axis is small next to its rim's, seen off the axis:
+    # g of several tens
+    r_obs, uv = observe(5.0 * alpha + 100.0 * ALPHA0_RAD * t**5, 1.0)
+    every = _fit_radial(r_obs, alpha, 6)
+    assert RADIAL_FIRST_START_MAX < np.max(np.abs(every[1:])) <= RADIAL_START_MAX
+    loose = initial_radial(uv, points_cam, pp, 6)
+    np.testing.assert_allclose(loose, every)  # the bound for adjusted geometry keeps all
+    first = initial_radial(uv, points_cam, pp, 6, 0.0, RADIAL_FIRST_START_MAX)
+    assert first.shape == (7,) and first[0] > 0
+    n_used = np.count_nonzero(first[1:])
+    assert n_used < 6 and np.all(first[1 + n_used :] == 0.0)
+    assert np.all(np.abs(first[1:]) <= RADIAL_FIRST_START_MAX)
+    # small coefficients: every term kept under either bound
+    r_obs, uv = observe(300.0 * (alpha - 0.1 * ALPHA0_RAD * t**3), 0.5)
+    first = initial_radial(uv, points_cam, pp, 6, 0.0, RADIAL_FIRST_START_MAX)
+    np.testing.assert_allclose(first, initial_radial(uv, points_cam, pp, 6))
+    np.testing.assert_allclose(first[:2], [300.0, -0.1], rtol=0.02, atol=0.01)
+
+
 def test_a_term_selection_that_costs_sigma_is_reverted(monkeypatch):
     """The Wald test trusts the covariance; when the reduced model's robust sigma comes
     out more than ``TERMS_SIGMA_GAIN`` times the full one's, the terms are kept (seed 5

@@ -555,6 +555,7 @@ def initial_radial(
     principal_point_px: np.ndarray,
     n_terms: int,
     warp_w: float = 0.0,
+    max_coefficient: float | None = None,
 ) -> np.ndarray:
     """Initial ``[c, g3, g5, ...]`` of the radial mapping from initial poses.
 
@@ -562,8 +563,11 @@ def initial_radial(
     (N,2), (N,3), reweighted twice with Huber weights against poor initial
     poses; falls back to equidistant (``g = alpha``) when the fit is not
     usable. With a warp ``warp_w`` (not 0) the polynomial's variable is
-    ``k beta(alpha)`` (:func:`~gtsam_sphere.core.camera.radial_g`).
+    ``k beta(alpha)`` (:func:`~gtsam_sphere.core.camera.radial_g`). The highest terms
+    are dropped (started at 0) until every coefficient is at most ``max_coefficient``
+    in magnitude (default :data:`RADIAL_START_MAX`).
     """
+    bound = RADIAL_START_MAX if max_coefficient is None else float(max_coefficient)
     r = np.linalg.norm(uv_px - principal_point_px, axis=1)
     norm = np.linalg.norm(points_cam, axis=1)
     alpha = np.arccos(np.clip(points_cam[:, 2] / np.where(norm > 0, norm, 1.0), -1, 1))
@@ -577,7 +581,7 @@ def initial_radial(
         # the zoo, a 150 deg pinhole with w = -1.39: g up to -7.9e8 on a 58 % consistent
         # start; the adjustment then crawled and the term selection broke the fit)
         cg = _fit_radial(r[ok], beta, n)
-        if n == 0 or np.all(np.abs(cg[1:]) <= RADIAL_START_MAX):
+        if n == 0 or np.all(np.abs(cg[1:]) <= bound):
             break
     cg = np.concatenate([cg, np.zeros(n_terms - n)])
     return np.concatenate([[cg[0] * k], cg[1:]])
@@ -585,6 +589,17 @@ def initial_radial(
 
 #: largest magnitude of a radial coefficient :func:`initial_radial` starts from
 RADIAL_START_MAX = 1e3
+#: ... and from the initial poses (RANSAC's, of an approximate lens): the polynomial's
+#: variable spans [0, 2] (:func:`~gtsam_sphere.core.camera.radial_g`), where a mapping
+#: has coefficients of order one. Where the observations start far off the axis, the
+#: fit of every term trades them off with ``c``: a 292 deg double-sphere board seen from
+#: 33 deg (``bench_lens_zoo.py --stress 40 --seed 3103 --shapes`` s11) fitted six terms
+#: with ``c`` = 2.5 px and g up to 175, about as well as four with ``c`` = 40 px and g
+#: up to 1.4 (1.99 against 2.07 px RMS); from the six every stage crawled to its cap
+#: (142 s of CPU), from the four 19 s. The re-warped start of :func:`select_warp` fits
+#: adjusted geometry and keeps the looser bound
+RADIAL_FIRST_START_MAX = 10.0
+
 
 #: warps :func:`warp_following_lens` tries (``k = exp(w)`` from 0.22 to 2.7)
 LENS_WARPS = tuple(round(float(w), 2) for w in np.arange(-1.5, 1.001, 0.25))
@@ -1359,7 +1374,12 @@ def _calibrate_once(
         cg = lens_cg
         if cg is None:
             cg = initial_radial(
-                dataset.uv_px[fit_rows], pc[fit_rows], pp, len(radial_names), warp_w or 0.0
+                dataset.uv_px[fit_rows],
+                pc[fit_rows],
+                pp,
+                len(radial_names),
+                warp_w or 0.0,
+                RADIAL_FIRST_START_MAX,
             )
         say(f"initial radial mapping: c = {cg[0]:.1f} px, g = {np.round(cg[1:], 4).tolist()}")
         theta0 = np.concatenate([pp, cg, np.zeros(len(brown_names))])
