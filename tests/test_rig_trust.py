@@ -389,7 +389,7 @@ def test_the_joint_adjustment_settles_only_what_it_redoes():
     assert _joint_settles_reason("p", imprecise, split, joint(17.0))  # 1.95 deg
     assert not _joint_settles_reason("p", imprecise, split, joint(18.0))  # 2.06 deg
     assert not _joint_settles_reason("p", imprecise, {}, joint(1.0))  # it saw all its images
-    # a low mean redundancy number when the joint graph's is at least the limit (1/3),
+    # a low mean redundancy number when the joint graph's is at least the limit (1/4),
     # also for a camera that saw all its images alone: the other cameras' rays add it
     low = str(Distrust.LOW_REDUNDANCY)
 
@@ -401,8 +401,8 @@ def test_the_joint_adjustment_settles_only_what_it_redoes():
         )
 
     for own in ({}, split):
-        assert _joint_settles_reason("p", low, own, redundant(0.34))
-        assert not _joint_settles_reason("p", low, own, redundant(0.33))
+        assert _joint_settles_reason("p", low, own, redundant(0.25))
+        assert not _joint_settles_reason("p", low, own, redundant(0.24))
     assert not _joint_settles_reason("p", low, {}, redundant(0.9, converged=False))
     assert not _joint_settles_reason("p", low, {}, redundant(0.9, sigma=False))
     assert not _joint_settles_reason("p", low, {}, None)
