@@ -129,6 +129,17 @@ def _family_options(family: str, fov: float) -> dict[str, float]:
     return {}
 
 
+def circle_radius_px(circle: float | None, width: int, height: int) -> float | None:
+    """Radius (px) of an image circle given as a fraction of the short side (< 1) or of
+    the half diagonal (>= 1) of a ``width`` x ``height`` image; None (a filled diagonal)
+    for None."""
+    if circle is None:
+        return None
+    if circle < 1.0:
+        return circle * min(width, height)
+    return circle * math.hypot(width, height) / 2.0
+
+
 @dataclass
 class Case:
     """One benchmark case (everything needed to rebuild its simulation).
@@ -195,11 +206,7 @@ class Case:
     @property
     def circle_radius_px(self) -> float | None:
         """Radius (px) where ``fov / 2`` lands; None for a filled diagonal."""
-        if self.circle is None:
-            return None
-        if self.circle < 1.0:
-            return self.circle * min(self.width, self.height)
-        return self.circle * math.hypot(self.width, self.height) / 2.0
+        return circle_radius_px(self.circle, self.width, self.height)
 
     @property
     def radius_over_short(self) -> float:
@@ -348,7 +355,7 @@ SHAPE_RANGES: dict[str, dict[str, tuple[float, float]]] = {
 SHAPE_TRIES = 30
 
 
-def _draw_shape(family: str, fov: float, rng: np.random.Generator) -> tuple[dict, bool]:
+def draw_shape(family: str, fov: float, rng: np.random.Generator) -> tuple[dict, bool]:
     """Shape parameters of ``family`` for a field of view ``fov`` (deg) drawn from
     :data:`SHAPE_RANGES`; ``(options, drawn)``, ``drawn`` False when no draw reached the
     field (the fixed :func:`_family_options` are returned)."""
@@ -401,7 +408,7 @@ def build_stress_cases(
         ids gain ``-t<mode>`` (``w``, ``f``, ``x``) and ``p``/``e`` for a pupil/field.
     shapes : bool
         Also draw, from a fourth stream, the family's shape parameters
-        (:data:`SHAPE_RANGES`, :func:`_draw_shape`); ids gain ``-s`` where drawn.
+        (:data:`SHAPE_RANGES`, :func:`draw_shape`); ids gain ``-s`` where drawn.
 
     Returns
     -------
@@ -430,7 +437,7 @@ def build_stress_cases(
         lens_options = _family_options(family, fov)
         suffix = ""
         if shapes:
-            lens_options, drawn = _draw_shape(family, fov, shape_rng)
+            lens_options, drawn = draw_shape(family, fov, shape_rng)
             suffix = "-s" if drawn else ""
         if defects:
             for name, bound in STRESS_DEFECTS.items():

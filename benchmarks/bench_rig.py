@@ -162,10 +162,8 @@ def _draw_lens(rng: np.random.Generator, fov_min: float):
     width, height = zoo.STRESS_SIZES[int(rng.integers(len(zoo.STRESS_SIZES)))]
     circles = zoo.STRESS_CIRCLES if fov < 180.0 else zoo.STRESS_CIRCLES[1:]
     circle = circles[int(rng.integers(len(circles)))]
-    radius = None
-    if circle is not None:
-        radius = circle * (min(width, height) if circle < 1.0 else np.hypot(width, height) / 2)
-    shape, _ = zoo._draw_shape(family, fov, rng)
+    radius = zoo.circle_radius_px(circle, width, height)
+    shape, _ = zoo.draw_shape(family, fov, rng)
     cx = (width - 1) / 2.0 + float(rng.uniform(-0.05, 0.05)) * width
     cy = (height - 1) / 2.0 + float(rng.uniform(-0.05, 0.05)) * height
     lens = make_lens(family, fov, width, height, circle_radius_px=radius, cx=cx, cy=cy, **shape)
@@ -208,8 +206,9 @@ def draw_random_rig(rng: np.random.Generator) -> tuple[str, list[RigCamera]]:
 
 def random_rigs(seed: int, n: int, frames: int) -> list[tuple[str, list[RigCamera]]]:
     """``n`` drawn rigs (:func:`draw_random_rig`) from ``seed``, each one the simulator
-    can frame in ``frames`` frames (drawn again otherwise, :data:`RANDOM_TRIES`);
-    labels ``rNN-layout-lens``."""
+    can frame in ``frames`` frames with simulation seed 1 (drawn again otherwise,
+    :data:`RANDOM_TRIES`; another seed that cannot frame it is a row with an error in
+    :func:`run_rig`); labels ``rNN-layout-lens``."""
     rng = np.random.default_rng([seed, 0x216])
     out = []
     for i in range(n):
@@ -242,7 +241,10 @@ def run_rig(
         noise_px=args.noise_px,
         cameras=None if cameras is None else tuple(cameras),
     )
-    sim = simulate_rig(opts)
+    try:
+        sim = simulate_rig(opts)
+    except (GtsamSphereError, ValueError) as exc:  # a drawn rig this seed cannot frame
+        return {"rig": kind, "error": f"simulation: {type(exc).__name__}: {exc}"}
     paths = write_rig_simulation(sim, work / kind)
     out = work / kind / "calib.json"
     argv = ["calibrate", str(paths["dataset"]), "-o", str(out), "--quiet"]
