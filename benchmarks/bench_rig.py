@@ -297,6 +297,11 @@ def run_rig(
                 "n_images": cs.get("n_images"),
                 "rms_px": cs.get("rms_px"),
                 "rms_px_rig": cs.get("rms_px_rig"),
+                "sigma_px": cs.get("sigma_px"),
+                "sigma_px_rig": cs.get("sigma_px_rig"),
+                "n_observations": cs.get("n_observations"),
+                "n_outliers": cs.get("n_outliers"),
+                "n_outliers_rig": cs.get("n_outliers_rig"),
                 "checkpoint_rmse_mm": None if cam_3d is None else cam_3d * scale,
                 "reference": pr.get("parent") is None,
                 "rot_err_deg": _angle_deg(R @ R_true.T),
@@ -323,6 +328,8 @@ def run_rig(
         "rms_px_rig": calib.statistics.get("rms_px_rig"),
         "checkpoint_rmse_mm": rig_3d * scale,
         "n_checkpoints": len(cp_ids),
+        "distrust": calib.statistics.get("distrust", []),
+        "joint": calib.statistics.get("joint"),
         "cameras": cams,
     }
 

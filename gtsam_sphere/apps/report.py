@@ -90,6 +90,8 @@ _STAT_ROWS: tuple[tuple[str, str], ...] = (
     ("weighted_sum_squares", "weighted sum of squares"),
     ("redundancy", "redundancy"),
     ("mean_redundancy", "mean redundancy number"),
+    ("n_targets_off_prior", "targets beyond 5 sigma of their priors"),
+    ("target_shift_max_sigma", "largest target shift (sigmas of its prior)"),
     ("variance_factor", "a-posteriori variance factor"),
     ("max_incidence_deg", "largest incidence angle (deg)"),
     ("fov_deg", "field of view covered (deg)"),

@@ -141,6 +141,13 @@ def print_statistics(stats: dict) -> None:
                 f"({stats.get('n_targets_unreliable', 0)}) / {stats.get('n_targets_weak', 0)}",
             )
         )
+    if "n_targets_off_prior" in stats:
+        rows.append(
+            (
+                "targets beyond 5 sigma of their priors (largest shift)",
+                f"{stats['n_targets_off_prior']} ({stats['target_shift_max_sigma']:.1f} sigma)",
+            )
+        )
     rows += [
         ("status", f"{stats['status']} after {stats['iterations']} iterations"),
     ]

@@ -58,7 +58,9 @@ from .calibrate import (
     UNFIXED_REASON,
     UNRELIABLE_REASON,
     mean_redundancy,
+    shift_over_sigma,
     targets_extent,
+    targets_off_prior_statistics,
     terms_to_drop,
     unfixed_targets,
     unreliable_targets,
@@ -356,6 +358,10 @@ class JointRigResult:
     mean_redundancy : float
         ``redundancy / (2 N + 3 (weighted targets))``, the mean redundancy number
         (:func:`~gtsam_sphere.estimation.calibrate.mean_redundancy`).
+    target_shifts : dict
+        How far the joint adjustment moved the targets with a prior, in sigmas of it
+        (:func:`~gtsam_sphere.estimation.calibrate.targets_off_prior_statistics`; empty
+        without such targets).
     notes : list of str
         What the adjustment left out or could not compute (no covariance).
     undetermined_targets : list of str
@@ -409,6 +415,7 @@ class JointRigResult:
     variance_factor: float = float("nan")
     redundancy: int = 0
     mean_redundancy: float = float("nan")
+    target_shifts: dict = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
     unsettled_scales: list[str] = field(default_factory=list)
     n_outliers: dict[str, int] = field(default_factory=dict)
@@ -1181,7 +1188,16 @@ def adjust_rig_jointly(
             f"camera {cid}: its robust scale alternated between {low:.4f} and {high:.4f} px "
             "from stage to stage (two fixed points of the reweighting); the larger is kept"
         )
+    # the targets with a prior the data moved furthest (calibrate.targets_off_prior)
+    weighted = np.array(
+        [j for j in free if np.isfinite(sigma[j]) and sigma[j] > 0 and not lost[j]], int
+    )
+    target_shifts = targets_off_prior_statistics(
+        [rig.target_ids[j] for j in weighted],
+        shift_over_sigma(xyz[weighted] - rig.target_xyz[weighted], sigma[weighted]),
+    )
     return JointRigResult(
+        target_shifts=target_shifts,
         cam_from_rig=ext,
         rig_from_world={f: (rig_R[k], rig_t[k]) for f, k in f_index.items()},
         cam_from_world=cam_from_world,
