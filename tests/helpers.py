@@ -134,22 +134,46 @@ def initialise_simulation(sim):
     return data, res, messages
 
 
-def small_free_room(seed=21):
+def small_free_room(seed=21, **overrides):
     """A free room (no target sigma) of 10 images, 150 targets, 150 deg equidistant lens
-    on 1024x768, 0.3 px: the end-to-end case of the target-reliability tests."""
+    on 1024x768, 0.3 px: the end-to-end case of the target-reliability tests.
+    ``overrides``: other ``SimulationOptions`` (e.g. ``sigma_mode=None,
+    target_sigma_m=0.01`` for the room surveyed to 1 cm)."""
     from gtsam_sphere.simulate import SimulationOptions, simulate_room
 
-    return simulate_room(
-        SimulationOptions(
-            lens="equidistant",
-            fov_deg=150,
-            noise_px=0.3,
-            n_images=10,
-            n_targets=150,
-            n_checkpoints=10,
-            width=1024,
-            height=768,
-            sigma_mode="free",
-            seed=seed,
-        )
+    options = dict(
+        lens="equidistant",
+        fov_deg=150,
+        noise_px=0.3,
+        n_images=10,
+        n_targets=150,
+        n_checkpoints=10,
+        width=1024,
+        height=768,
+        sigma_mode="free",
+        seed=seed,
     )
+    return simulate_room(SimulationOptions(**{**options, **overrides}))
+
+
+def summary_statistics(**extra):
+    """The statistics ``cli.common.print_statistics`` needs (a weak 5-image geometry),
+    with ``extra`` keys added."""
+    return {
+        "rms_px": 0.5,
+        "rms_px_without_outliers": 0.45,
+        "n_observations": 120,
+        "n_rejected": 0,
+        "n_images": 5,
+        "n_images_skipped": 0,
+        "n_downweighted": 5,
+        "n_outliers": 4,
+        "sigma_px": 0.53,
+        "weighted_sum_squares": 76.2,
+        "redundancy": 48,
+        "variance_factor": 1.59,
+        "max_incidence_deg": 38.9,
+        "status": "converged",
+        "iterations": 163,
+        **extra,
+    }

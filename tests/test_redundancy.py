@@ -7,7 +7,7 @@ import copy
 
 import numpy as np
 import pytest
-from helpers import small_free_room
+from helpers import small_free_room, summary_statistics
 
 from gtsam_sphere.estimation.calibrate import (
     MIN_MEAN_REDUNDANCY,
@@ -74,23 +74,7 @@ def test_a_free_room_of_three_images_is_not_trusted_and_says_why():
 def test_the_summary_prints_the_mean_beside_the_redundancy(capsys):
     from gtsam_sphere.cli.common import print_statistics
 
-    stats = {
-        "rms_px": 0.5,
-        "rms_px_without_outliers": 0.45,
-        "n_observations": 120,
-        "n_rejected": 0,
-        "n_images": 5,
-        "n_images_skipped": 0,
-        "n_downweighted": 5,
-        "n_outliers": 4,
-        "sigma_px": 0.53,
-        "weighted_sum_squares": 76.2,
-        "redundancy": 48,
-        "variance_factor": 1.59,
-        "max_incidence_deg": 38.9,
-        "status": "converged",
-        "iterations": 163,
-    }
+    stats = summary_statistics()
     print_statistics(dict(stats, mean_redundancy=0.2))
     line = next(x for x in capsys.readouterr().out.splitlines() if "redundancy" in x)
     assert line.split()[-2:] == ["48", "(0.20)"]

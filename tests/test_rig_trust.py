@@ -408,6 +408,40 @@ def test_the_joint_adjustment_settles_only_what_it_redoes():
     assert not _joint_settles_reason("p", low, {}, None)
 
 
+def test_a_seeded_camera_misfits_when_its_scale_is_well_above_the_others():
+    from gtsam_sphere.estimation.rig_joint import MISFIT_SCALE_RATIO, misfitting_cameras
+
+    assert MISFIT_SCALE_RATIO == 1.3
+    scales = {"fisheye": 0.304, "pinhole": 0.444, "ring": 0.30}
+    assert misfitting_cameras(scales, {"pinhole": ()}) == ["pinhole"]
+    # against the largest of the others, only the candidates
+    assert misfitting_cameras(dict(scales, ring=0.35), {"pinhole": ()}) == []
+    assert misfitting_cameras(scales, {}) == []
+    assert misfitting_cameras({"pinhole": 0.346, "fisheye": 0.298}, {"pinhole": ()}) == []
+    assert misfitting_cameras({"pinhole": 0.9}, {"pinhole": ()}) == []  # alone
+
+
+@pytest.mark.slow  # a two-camera rig of 6 frames, ~10 s
+def test_a_seeded_camera_that_misfits_in_the_joint_graph_has_its_terms_chosen_again():
+    """Free mixed rig, 6 frames, seed 19: the pinhole is seeded on approximate targets
+    (189 observations of 166 targets), which absorb its barrel distortion, and term
+    selection drops every radial term. Jointly its scale was 0.444 px against the
+    fisheye's 0.304 px, and its cam_from_rig 9 mm off along its axis (3.6 reported
+    sigma), trusted. Its terms chosen again: within 3 sigma."""
+    sim = simulate_rig(RigOptions(rig="mixed", n_frames=6, seed=19))
+    lines = []
+    calib = calibrate_rig(parse_rig_dataset(_free(sim.dataset)), progress=lines.append)
+    st = calib.statistics["cameras"]["pinhole"]
+    assert "seeded_on_approximate_targets" in st
+    assert not [k for k in st["intrinsics_own"]["radial"] if k.startswith("g")]
+    assert any(
+        ln.startswith("[rig] camera pinhole: its robust scale in the joint graph") for ln in lines
+    )
+    assert st["sigma_px_rig"] < 1.1 * calib.statistics["cameras"]["fisheye"]["sigma_px_rig"]
+    assert calib.statistics["trusted"], calib.statistics["distrust"]
+    _within_three_sigma(calib, sim.cameras[1])
+
+
 @pytest.mark.slow  # a two-camera rig of 8 frames, ~9 s
 def test_a_split_camera_that_did_not_converge_alone_is_settled_by_the_joint_graph():
     """Free mixed rig, 8 frames, seed 5: the pinhole's largest group (3 of its images)

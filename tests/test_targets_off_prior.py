@@ -9,6 +9,7 @@ import logging
 
 import numpy as np
 import pytest
+from helpers import small_free_room, summary_statistics
 
 from gtsam_sphere.estimation.calibrate import (
     MIN_TARGETS_OFF_PRIOR,
@@ -64,22 +65,8 @@ def test_a_few_targets_are_a_warning_several_are_a_reason(caplog):
 
 
 def _surveyed_room():
-    from gtsam_sphere.simulate import SimulationOptions, simulate_room
-
-    return simulate_room(
-        SimulationOptions(
-            lens="equidistant",
-            fov_deg=150,
-            noise_px=0.3,
-            n_images=10,
-            n_targets=150,
-            n_checkpoints=10,
-            width=1024,
-            height=768,
-            target_sigma_m=0.01,
-            seed=21,
-        )
-    )
+    # the small room of the redundancy tests, surveyed to 1 cm
+    return small_free_room(21, sigma_mode=None, target_sigma_m=0.01)
 
 
 def _displaced(doc: dict, ids: list[str], by_m: float) -> dict:
@@ -135,23 +122,7 @@ def test_wrong_survey_coordinates_are_named_and_several_are_not_trusted(caplog):
 def test_the_summary_prints_the_count_and_the_largest_shift(capsys):
     from gtsam_sphere.cli.common import print_statistics
 
-    stats = {
-        "rms_px": 0.5,
-        "rms_px_without_outliers": 0.45,
-        "n_observations": 120,
-        "n_rejected": 0,
-        "n_images": 5,
-        "n_images_skipped": 0,
-        "n_downweighted": 5,
-        "n_outliers": 4,
-        "sigma_px": 0.53,
-        "weighted_sum_squares": 76.2,
-        "redundancy": 48,
-        "variance_factor": 1.59,
-        "max_incidence_deg": 38.9,
-        "status": "converged",
-        "iterations": 163,
-    }
+    stats = summary_statistics()
     print_statistics(dict(stats, n_targets_off_prior=9, target_shift_max_sigma=7.34))
     line = next(x for x in capsys.readouterr().out.splitlines() if "priors" in x)
     assert line.split()[-3:] == ["9", "(7.3", "sigma)"]

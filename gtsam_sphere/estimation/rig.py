@@ -850,6 +850,12 @@ def joint_disagreement(cid: str, statistics: dict, jr) -> str:
     )
 
 
+def _terms_chosen(options: CalibrationOptions) -> bool:
+    """The camera's radial and Brown terms are chosen by the data (a radial model with
+    term selection and free intrinsics): the joint graph may choose them again."""
+    return options.model.uses_radial and options.select_terms and options.fixed_intrinsics is None
+
+
 def _fitted_exactly(cid: str, statistics: dict, jr) -> bool:
     """The camera's own robust scale ended at the floor (``calibrate.MIN_SIGMA_PX``)."""
     return float(statistics.get("sigma_px", np.inf)) <= MIN_SIGMA_PX * (1.0 + 1e-9)
@@ -1131,11 +1137,16 @@ def assemble_rig(
                 if (_saw_part_alone(calibs[c].statistics) or _joint_widens(calibs[c].statistics))
                 # a seed saw every image (its targets held near their approximate
                 # coordinates): its term set stands (free mixed 6 frames seed 3: g3
-                # added back left 7 of its 165 observations carrying the noise)
+                # added back left 7 of its 165 observations carrying the noise)...
                 and "seeded_on_approximate_targets" not in calibs[c].statistics
-                and options[c].model.uses_radial
-                and options[c].select_terms
-                and options[c].fixed_intrinsics is None
+                and _terms_chosen(options[c])
+            },
+            # ...unless the joint graph shows it misfits (rig_joint.MISFIT_SCALE_RATIO)
+            reselect_if_misfit={
+                c: (radial_terms(options[c].radial_terms), tuple(options[c].brown_terms or ()))
+                for c in ids
+                if "seeded_on_approximate_targets" in calibs[c].statistics
+                and _terms_chosen(options[c])
             },
         )
         adjustment = RIG_ADJUSTMENT
