@@ -2881,8 +2881,8 @@ def targets_off_prior(statistics: dict, warn: bool = True) -> str:
     if n < MIN_TARGETS_OFF_PRIOR:
         if warn:
             logger.warning(
-                "%d target(s) moved beyond %.0f sigma of their stated coordinates: %s "
-                "(in sigmas): check their coordinates and their observations",
+                "%d target(s) moved beyond %.0f sigma of their stated coordinates (in "
+                "sigmas: %s): check their coordinates and their observations",
                 n,
                 TARGET_SHIFT_LIMIT_SIGMA,
                 named,
