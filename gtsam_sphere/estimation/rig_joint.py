@@ -57,6 +57,7 @@ from .calibrate import (
     LOST_TO_OUTLIERS_REASON,
     UNFIXED_REASON,
     UNRELIABLE_REASON,
+    images_per_target,
     mean_redundancy,
     shift_over_sigma,
     targets_extent,
@@ -930,18 +931,24 @@ def adjust_rig_jointly(
         {cid: p.noise.sigma_px for cid, p in problems.items()}, reselect_if_misfit
     )
     for cid in misfit:
-        say(
-            f"[rig] camera {cid}: its robust scale in the joint graph, "
-            f"{problems[cid].noise.sigma_px:.4f} px, is above {MISFIT_SCALE_RATIO:g} times "
-            "the other cameras': its term set, chosen with its targets held only near "
-            "their approximate coordinates, is chosen again"
-        )
         reselect_terms[cid] = reselect_if_misfit[cid]
     reselect_terms = {
         cid: terms
         for cid, terms in reselect_terms.items()
         if len(problems[cid].uv_px) >= RESELECT_OBS_PER_TERM * (3 + len(terms[0]) + len(terms[1]))
     }
+    for cid in misfit:
+        say(
+            f"[rig] camera {cid}: its robust scale in the joint graph, "
+            f"{problems[cid].noise.sigma_px:.4f} px, is above {MISFIT_SCALE_RATIO:g} times "
+            "the other cameras': its term set, chosen with its targets held only near "
+            "their approximate coordinates, "
+            + (
+                "is chosen again"
+                if cid in reselect_terms
+                else "stands (too few observations to choose it again)"
+            )
+        )
     if reselect_terms:
         # the full term set, adjusted once at the scales just settled (re-estimated
         # with terms the data may not support, a camera's scale fell to the floor or
@@ -1235,9 +1242,20 @@ def adjust_rig_jointly(
     weighted = np.array(
         [j for j in free if np.isfinite(sigma[j]) and sigma[j] > 0 and not lost[j]], int
     )
+    seen_in = images_per_target(
+        np.concatenate([p.obs_target for p in problems.values()]),
+        np.concatenate(
+            [
+                np.array([image_global[images_of[cid][k]] for k in p.obs_image], int)
+                for cid, p in problems.items()
+            ]
+        ),
+        len(rig.target_ids),
+    )
     target_shifts = targets_off_prior_statistics(
         [rig.target_ids[j] for j in weighted],
         shift_over_sigma(xyz[weighted] - rig.target_xyz[weighted], sigma[weighted]),
+        seen_in[weighted],
     )
     return JointRigResult(
         target_shifts=target_shifts,
