@@ -645,6 +645,10 @@ def test_a_final_sigma_far_above_the_first_adjustments_is_not_trusted(monkeypatc
     calib = calibrate(parse_dataset(sim.dataset), options)
     assert not calib.statistics["trusted"]
     assert any("times the first adjustment's" in r for r in calib.statistics["distrust"])
+    # and the smallest scale a stage of the first adjustment reached, its reference too
+    st = calib.statistics
+    assert 0 < st["first_stage_sigma_px"] <= st["first_sigma_px"] * 1.05
+    assert any("smallest a stage of the first adjustment" in r for r in st["distrust"])
 
 
 def _small_radial_knn_run(knn: dict):

@@ -432,3 +432,26 @@ def test_a_knn_loop_caught_in_a_cycle_of_two_rounds_is_stable():
     assert any(ln.endswith("(a cycle of two rounds)") for ln in lines)
     assert calib.statistics["trusted"], calib.statistics["distrust"]
     assert calib.statistics["knn_rounds"] == 3
+
+
+@pytest.mark.slow  # 6,326 observations, and the fallbacks an untrusted result tries: ~2 min
+def test_a_first_adjustment_that_drifts_from_its_first_stage_is_not_trusted():
+    """``--stress 40 --seed 3201 --targets --defects --shapes`` s06: a 332 deg sphere
+    lens on a 3D object (752x480, 0.1 px). The first stage fitted the 78 % of the
+    observations the initialisation explained at a robust scale of 0.17 px; the Huber
+    stages then let the other 22 % pull the lens to c = 4,714 px (true 528) and a 7 deg
+    field at 9.9 px, trusted at 10.9x the known-family adjustment's 3D error. A final
+    scale above ``SIGMA_GROWTH`` times the smallest a first-adjustment stage reached is
+    not trusted."""
+    from gtsam_sphere.estimation.calibrate import Distrust, calibrate
+    from gtsam_sphere.io.dataset import parse_dataset
+    from gtsam_sphere.simulate import simulate_room
+
+    cases = ZOO.build_stress_cases(3201, 40, defects=True, targets=True, shapes=True)
+    case = next(c for c in cases if c.id.startswith("s06-"))
+    assert case.id.startswith("s06-sphere-332-object3d-752x480")
+    sim = simulate_room(case.options())
+    st = calibrate(parse_dataset(sim.dataset), None).statistics
+    assert not st["trusted"]
+    assert Distrust.SIGMA_GROWTH in st["distrust_codes"]
+    assert st["sigma_px"] > 10 * st["first_stage_sigma_px"]

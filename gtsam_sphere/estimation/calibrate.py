@@ -186,6 +186,8 @@ class Adjustment:
     result: OptimizationResult
     sigma_px: float
     loss: str = ""
+    #: the smallest robust scale any of its stages estimated (px; NaN when none did)
+    min_sigma_px: float = float("nan")
 
 
 def initial_values(
@@ -281,6 +283,7 @@ def adjust(
     history: list[dict] = []
     result = None
     stopped = False
+    estimated: list[float] = []  # the robust scale of each stage
     for stage in range(1, max_stages + 1):
         # stage 1 in plain least squares: robust weights computed at a poor start can hold
         # a wrong minimum (observed with a 300 deg lens); later stages are robust
@@ -327,6 +330,7 @@ def adjust(
         # in one image (absorbed by the target) would otherwise pull the scale to zero
         redundancy = problem.observation_redundancy(result.values, old)
         sigma = robust_sigma_px(r, MIN_SIGMA_PX, redundancy)
+        estimated.append(sigma)
         if progress:
             progress(f"{label}robust scale estimate sigma = {sigma:.4f} px (was {old:.4f})")
         problem.noise = NoiseOptions(sigma, loss, problem.noise.loss_threshold)
@@ -367,7 +371,15 @@ def adjust(
     used = str(loss) if problem.noise.loss is loss else f"{loss}, then {problem.noise.loss}"
     # the next adjustment of this problem starts again from the caller's loss
     problem.noise = NoiseOptions(problem.noise.sigma_px, loss, problem.noise.loss_threshold)
-    return Adjustment(result.values, res, w, result, problem.noise.sigma_px, used)
+    return Adjustment(
+        result.values,
+        res,
+        w,
+        result,
+        problem.noise.sigma_px,
+        used,
+        min(estimated) if estimated else float("nan"),
+    )
 
 
 #: :func:`_truncated_costs` caps each squared residual at this many (common) sigmas
@@ -1410,6 +1422,8 @@ def _calibrate_once(
         first_stage_mask=inlier_mask,
         after_stage=stage_probe,
     )
+    # the smallest scale its stages reached: a fit that then drifts away grows from it
+    stage_sigma_px = adj.min_sigma_px
     reverted_warps: dict[float, Adjustment] = {}
     if stage_probe.fired:
         # the first adjustment stopped for a better warp: take it before anything else
@@ -1469,6 +1483,8 @@ def _calibrate_once(
         calib.statistics["control_sigma_mode"] = (
             "auto" if options.control_sigma == CONTROL_SIGMA_AUTO else "given"
         )
+    if np.isfinite(stage_sigma_px):
+        calib.statistics["first_stage_sigma_px"] = float(stage_sigma_px)
     findings = distrust_reasons(calib, cov_theta, options, problem, knn_stable, first_sigma_px)
     calib.statistics["distrust"] = [text for _, text in findings]
     calib.statistics["distrust_codes"] = [str(code) for code, _ in findings]
@@ -3031,6 +3047,23 @@ def distrust_reasons(
     why = targets_off_prior(st)
     if why:
         out.append((Distrust.TARGETS_OFF_PRIOR, why))
+    stage = st.get("first_stage_sigma_px")
+    if options.sigma_px is None and stage and st["sigma_px"] > SIGMA_GROWTH * stage:
+        # the first adjustment's own stages drifted: its robust scale grew from the
+        # smallest a stage reached (stress 3201 s06, a 332 deg sphere lens on a 3D object,
+        # 0.1 px: 0.17 px after the first stage, then Huber stages let the 22 % the
+        # initialisation could not explain pull the lens to c = 4,714 px (true 528) and
+        # a 7 deg field at 9.9 px; trusted at 10.9x the known-family adjustment's 3D
+        # error)
+        out.append(
+            (
+                Distrust.SIGMA_GROWTH,
+                f"the final robust sigma ({st['sigma_px']:.3f} px) is "
+                f"{st['sigma_px'] / stage:.1f} times the smallest a stage of the first "
+                f"adjustment reached ({stage:.3f} px): the adjustment moved away from the "
+                "geometry its first stage fitted",
+            )
+        )
     growth = st["sigma_px"] / first_sigma_px if first_sigma_px else 0.0
     if options.sigma_px is None and growth > SIGMA_GROWTH:
         # every later step (warp, terms, shape prior, kNN) is kept only when it fits at
