@@ -1117,6 +1117,11 @@ def assemble_rig(
             for c in ids
             if options[c].fixed_intrinsics is not None
         }
+        # every term each camera's own run started with (the joint graph may choose again)
+        full_terms = {
+            c: (radial_terms(options[c].radial_terms), tuple(options[c].brown_terms or ()))
+            for c in ids
+        }
         jr = adjust_rig_jointly(
             rig,
             calibs,
@@ -1132,7 +1137,7 @@ def assemble_rig(
             knn_rounds=knn_rounds,
             seed=first.seed,
             reselect_terms={
-                c: (radial_terms(options[c].radial_terms), tuple(options[c].brown_terms or ()))
+                c: full_terms[c]
                 for c in ids
                 if (_saw_part_alone(calibs[c].statistics) or _joint_widens(calibs[c].statistics))
                 # a seed saw every image (its targets held near their approximate
@@ -1143,7 +1148,7 @@ def assemble_rig(
             },
             # ...unless the joint graph shows it misfits (rig_joint.MISFIT_SCALE_RATIO)
             reselect_if_misfit={
-                c: (radial_terms(options[c].radial_terms), tuple(options[c].brown_terms or ()))
+                c: full_terms[c]
                 for c in ids
                 if "seeded_on_approximate_targets" in calibs[c].statistics
                 and _terms_chosen(options[c])
@@ -1265,7 +1270,6 @@ def assemble_rig(
                 f"{camera_stats[cid]['n_observations_rig']} observations are beyond 5 sigma "
                 "in the joint rig adjustment"
             )
-    for cid in ids if jr is not None else []:
         why = joint_disagreement(cid, calibs[cid].statistics, jr)
         if why:
             distrust.append(f"camera {cid!r}: {why}")
