@@ -18,6 +18,30 @@ def shared_data_file(name: str) -> Path:
     return path
 
 
+def benchmark_module(name: str):
+    """``benchmarks/<name>.py`` imported as module ``name`` (once: registered in
+    ``sys.modules``, where its dataclasses look their module up)."""
+    import importlib.util
+    import sys
+
+    if name in sys.modules:
+        return sys.modules[name]
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+def stress_case(seed: int, prefix: str):
+    """The lens zoo's stress case ``prefix`` (e.g. ``"s07-"``) of
+    ``bench_lens_zoo.py --stress 40 --seed SEED --targets --defects --shapes``."""
+    zoo = benchmark_module("bench_lens_zoo")
+    cases = zoo.build_stress_cases(seed, 40, defects=True, targets=True, shapes=True)
+    return next(c for c in cases if c.id.startswith(prefix))
+
+
 def dataset_doc(targets, images, width=640, height=480):
     """A ``dataset@1`` document (metres) of ``targets`` and ``images`` (lists of dicts)."""
     return {

@@ -1242,16 +1242,8 @@ def adjust_rig_jointly(
     weighted = np.array(
         [j for j in free if np.isfinite(sigma[j]) and sigma[j] > 0 and not lost[j]], int
     )
-    seen_in = images_per_target(
-        np.concatenate([p.obs_target for p in problems.values()]),
-        np.concatenate(
-            [
-                np.array([image_global[images_of[cid][k]] for k in p.obs_image], int)
-                for cid, p in problems.items()
-            ]
-        ),
-        len(rig.target_ids),
-    )
+    # rays that are not outliers, each camera's image apart (calibrate._result)
+    seen_in = images_per_target(good_target_all, good_image_all, len(rig.target_ids))
     target_shifts = targets_off_prior_statistics(
         [rig.target_ids[j] for j in weighted],
         shift_over_sigma(xyz[weighted] - rig.target_xyz[weighted], sigma[weighted]),
