@@ -617,7 +617,9 @@ def run_case(case: Case, workdir: Path, verbose: bool = False) -> dict:
         CPU time: steadier on a shared machine) of the default calibration only,
         ``time_per_1k_obs_s``, ``cpu_per_1k_obs_s``, ``hypothesis``, ``pp_error_px``,
         ``c_error_pct`` (principal distance against the true lens's image
-        radius per radian at the axis), ``distrust``; ``error`` /
+        radius per radian at the axis), ``distrust``, and the statistics some trust
+        rules read (``sigma_px``, ``first_stage_sigma_px``, ``target_shift_max_sigma``,
+        ``n_targets_off_prior``, ``mean_redundancy``, where present); ``error`` /
         ``oracle_error`` (``"Type: message"``) when something raised.
     """
     from gtsam_sphere.simulate import simulate_room, write_simulation
@@ -666,6 +668,16 @@ def run_case(case: Case, workdir: Path, verbose: bool = False) -> dict:
         row["converged"] = bool(st["converged"])
         row["distrust"] = list(st.get("distrust", []))
         row["rms_px"] = float(st["rms_px"])
+        # the margins of the trust rules that read these (calibrate.Distrust)
+        for key in (
+            "sigma_px",
+            "first_stage_sigma_px",
+            "target_shift_max_sigma",
+            "n_targets_off_prior",
+            "mean_redundancy",
+        ):
+            if st.get(key) is not None:
+                row[key] = float(st[key])
         row["model"] = str(calib.model)
         hyp = next((ln for ln in lines if ln.startswith("initial lens:")), "")
         m = re.search(r"\(family\s*([^,]+),", hyp)

@@ -201,3 +201,57 @@ def summary_statistics(**extra):
         "iterations": 163,
         **extra,
     }
+
+
+def three_view_problem(gross: dict, sigma: dict | None = None, noise_px=0.5):
+    """A free network: 3 images (world_from_cam translations along x) of 40 targets on
+    a sphere camera (c 300 px), each target seen in the images of ``gross``'s key or in
+    all three; ``gross`` maps target -> images whose observation is moved 200 px;
+    ``sigma`` target -> its sigma (m). Returns (problem built, values at the truth)."""
+    import gtsam
+
+    from gtsam_sphere.core.camera import SphereCamera
+    from gtsam_sphere.estimation.graph import (
+        INTRINSICS_KEY,
+        BundleProblem,
+        NoiseOptions,
+        point_key,
+        pose_key,
+    )
+
+    rng = np.random.default_rng(11)
+    cam = SphereCamera(width=1000, height=800, xp=500.0, yp=400.0, c=300.0)
+    xyz = np.c_[rng.uniform(-3, 3, (40, 2)), rng.uniform(4, 6, 40)]
+    xyz[:3] = [[0.1, 0.2, 5.0], [-0.2, 0.1, 5.1], [0.0, -0.1, 4.9]]  # inside the cloud
+    centres = np.array([[-0.5, 0, 0], [0, 0, 0], [0.5, 0, 0.0]])
+    obs_image, obs_target, uv = [], [], []
+    for t in range(40):
+        for i in range(3):
+            if t in gross and i not in gross[t][0]:
+                continue
+            obs_image.append(i)
+            obs_target.append(t)
+            p = cam.project((xyz[t] - centres[i])[None])[0]
+            if t in gross and i in gross[t][1]:
+                p = p + [200.0, 0.0]
+            uv.append(p)
+    target_sigma = np.full(40, np.nan)
+    for t, s in (sigma or {}).items():
+        target_sigma[t] = s
+    problem = BundleProblem(
+        obs_image=np.array(obs_image),
+        obs_target=np.array(obs_target),
+        uv_px=np.array(uv) + rng.normal(0, 0.01, (len(uv), 2)),
+        target_xyz=xyz,
+        target_sigma=target_sigma,
+        n_images=3,
+        noise=NoiseOptions(noise_px),
+    )
+    values = gtsam.Values()
+    for i in range(3):
+        values.insert(pose_key(i), gtsam.Pose3(gtsam.Rot3(), centres[i]))
+    for t in problem.free_targets:
+        values.insert(point_key(int(t)), xyz[t])
+    values.insert(INTRINSICS_KEY, np.array([500.0, 400.0, 300.0]))
+    problem.build()
+    return problem, values

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from helpers import dataset_doc, small_free_room
+from helpers import dataset_doc, small_free_room, three_view_problem
 
 from gtsam_sphere.core.geometry import (
     MISFIT_LIMIT,
@@ -279,60 +279,6 @@ def test_rays_that_meet_beyond_the_network_do_not_fix_a_target():
     assert np.flatnonzero(out).tolist() == [0, 1]
 
 
-def _three_view_problem(gross: dict, sigma: dict | None = None, noise_px=0.5):
-    """A free network: 3 images (world_from_cam translations along x) of 40 targets on
-    a sphere camera (c 300 px), each target seen in the images of ``gross``'s key or in
-    all three; ``gross`` maps target -> images whose observation is moved 200 px;
-    ``sigma`` target -> its sigma (m). Returns (problem built, values at the truth)."""
-    import gtsam
-
-    from gtsam_sphere.core.camera import SphereCamera
-    from gtsam_sphere.estimation.graph import (
-        INTRINSICS_KEY,
-        BundleProblem,
-        NoiseOptions,
-        point_key,
-        pose_key,
-    )
-
-    rng = np.random.default_rng(11)
-    cam = SphereCamera(width=1000, height=800, xp=500.0, yp=400.0, c=300.0)
-    xyz = np.c_[rng.uniform(-3, 3, (40, 2)), rng.uniform(4, 6, 40)]
-    xyz[:3] = [[0.1, 0.2, 5.0], [-0.2, 0.1, 5.1], [0.0, -0.1, 4.9]]  # inside the cloud
-    centres = np.array([[-0.5, 0, 0], [0, 0, 0], [0.5, 0, 0.0]])
-    obs_image, obs_target, uv = [], [], []
-    for t in range(40):
-        for i in range(3):
-            if t in gross and i not in gross[t][0]:
-                continue
-            obs_image.append(i)
-            obs_target.append(t)
-            p = cam.project((xyz[t] - centres[i])[None])[0]
-            if t in gross and i in gross[t][1]:
-                p = p + [200.0, 0.0]
-            uv.append(p)
-    target_sigma = np.full(40, np.nan)
-    for t, s in (sigma or {}).items():
-        target_sigma[t] = s
-    problem = BundleProblem(
-        obs_image=np.array(obs_image),
-        obs_target=np.array(obs_target),
-        uv_px=np.array(uv) + rng.normal(0, 0.01, (len(uv), 2)),
-        target_xyz=xyz,
-        target_sigma=target_sigma,
-        n_images=3,
-        noise=NoiseOptions(noise_px),
-    )
-    values = gtsam.Values()
-    for i in range(3):
-        values.insert(pose_key(i), gtsam.Pose3(gtsam.Rot3(), centres[i]))
-    for t in problem.free_targets:
-        values.insert(point_key(int(t)), xyz[t])
-    values.insert(INTRINSICS_KEY, np.array([500.0, 400.0, 300.0]))
-    problem.build()
-    return problem, values
-
-
 def test_a_stage_holds_out_a_free_target_only_a_blunder_ties_to_a_second_image():
     """``held_out_targets`` (zoo stress 3201 s32): T0, seen in images 0 and 1 with a
     200 px blunder in 1, is held out; T1, seen in three images with one blunder, and
@@ -341,12 +287,12 @@ def test_a_stage_holds_out_a_free_target_only_a_blunder_ties_to_a_second_image()
 
     gross = {0: ((0, 1), (1,)), 1: ((0, 1, 2), (2,)), 2: ((0, 1), (1,))}
     surveyed = {2: 0.01, 10: 0.01, 20: 0.01, 30: 0.01}  # a datum of targets with a sigma
-    problem, values = _three_view_problem(gross, surveyed)
+    problem, values = three_view_problem(gross, surveyed)
     hold = held_out_targets(problem, values)
     assert np.unique(problem.obs_target[hold]).tolist() == [0]
     assert hold.sum() == 2  # both of its observations
     # a scale that makes the blunder look ordinary: nothing is held out
-    problem_wide, values = _three_view_problem(gross, surveyed, noise_px=30.0)
+    problem_wide, values = three_view_problem(gross, surveyed, noise_px=30.0)
     assert not held_out_targets(problem_wide, values).any()
 
 
@@ -359,7 +305,7 @@ def test_a_held_out_target_keeps_its_place_on_its_good_ray():
     from gtsam_sphere.estimation.graph import point_key, pose_key
     from gtsam_sphere.estimation.optimize import OptimizerOptions
 
-    problem, truth = _three_view_problem({0: ((0, 1), (1,))})
+    problem, truth = three_view_problem({0: ((0, 1), (1,))})
     start = gtsam.Values(truth)
     start.update(pose_key(2), truth.atPose3(pose_key(2)).retract(np.full(6, 0.01)))
     lines: list[str] = []
