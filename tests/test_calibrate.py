@@ -1110,30 +1110,3 @@ def test_a_principal_point_known_to_several_degrees_is_not_trusted():
     # nothing to judge: no covariance, or a model without a principal point
     assert imprecise_principal_point(None, names, c_px) == ""
     assert imprecise_principal_point(np.eye(2), ["c_px", "g3"], c_px) == ""
-
-
-def test_a_warm_adjustment_with_cauchy_keeps_the_callers_loss():
-    """``adjust(..., robust_loss=Loss.CAUCHY)`` (a kNN round after an adjustment that
-    ended with Cauchy's loss): its stages use Cauchy's weights, a blunder gets next to
-    none, and the problem's own loss is left as the caller had it."""
-    import gtsam
-    from helpers import three_view_problem
-
-    from gtsam_sphere.core.robust import Loss
-    from gtsam_sphere.estimation.calibrate import adjust
-    from gtsam_sphere.estimation.graph import NoiseOptions
-    from gtsam_sphere.estimation.optimize import OptimizerOptions
-
-    # T1 seen in three images, its third ray 200 px off: a blunder, not held out
-    problem, truth = three_view_problem({1: ((0, 1, 2), (2,))})
-    problem.noise = NoiseOptions(0.5, Loss.HUBER)
-    blunder = np.flatnonzero((problem.obs_target == 1) & (problem.obs_image == 2))
-    adj = adjust(
-        problem, gtsam.Values(truth), OptimizerOptions(), warm=True, robust_loss=Loss.CAUCHY
-    )
-    assert adj.loss == "cauchy"
-    assert problem.noise.loss is Loss.HUBER
-    assert adj.weights[blunder][0] < 1e-3
-    huber = adjust(problem, gtsam.Values(truth), OptimizerOptions(), warm=True)
-    assert huber.loss.startswith("huber")
-    assert huber.weights[blunder][0] > adj.weights[blunder][0]

@@ -276,7 +276,6 @@ def adjust(
     warm: bool = False,
     after_stage: Callable[[gtsam.Values, np.ndarray, float], bool | None] | None = None,
     first_stage_all: bool = True,
-    robust_loss: Loss | None = None,
 ) -> Adjustment:
     """Robust adjustment, optionally estimating ``sigma_px`` from the residuals.
 
@@ -305,13 +304,6 @@ def adjust(
     least-squares stage to protect: the robust stages start from that scale, and stop
     as soon as it changes by less than 5% (one stage, usually).
 
-    ``robust_loss``: the loss of the robust stages (None: ``problem.noise.loss``, then
-    Cauchy's in a last stage when gross outliers remain). A kNN round, warm from an
-    adjustment that ended with Cauchy's, passes :attr:`Loss.CAUCHY`: Huber's stages
-    would first pull its blunders back in, then Cauchy's set them aside again (stress
-    3301 s08, a 52 deg pinhole room with 5 % blunders: 60-87 Huber iterations in each
-    of seven rounds).
-
     ``after_stage(values, r_px, sigma_px)``: called after every robust stage but the
     last (not after the first, least-squares, stage: its state can be far from the
     robust one) with its values, the residual norms (N,) px and the new scale
@@ -339,8 +331,7 @@ def adjust(
             # RANSAC's verdict, plus what the start already predicts well (RANSAC's lens
             # hypotheses cannot see past 90 deg for the sphere, for instance)
             first_stage_mask = np.asarray(first_stage_mask, bool) | (r0 < 3.0 * np.median(r0))
-    caller_loss = problem.noise.loss
-    loss = caller_loss if robust_loss is None else Loss(robust_loss)
+    loss = problem.noise.loss
     history: list[dict] = []
     result = None
     stopped = False
@@ -436,7 +427,7 @@ def adjust(
     w, _ = robust_weight(r, problem.noise.loss, problem.noise.loss_threshold)
     used = str(loss) if problem.noise.loss is loss else f"{loss}, then {problem.noise.loss}"
     # the next adjustment of this problem starts again from the caller's loss
-    problem.noise = NoiseOptions(problem.noise.sigma_px, caller_loss, problem.noise.loss_threshold)
+    problem.noise = NoiseOptions(problem.noise.sigma_px, loss, problem.noise.loss_threshold)
     return Adjustment(
         result.values,
         res,

@@ -24,7 +24,7 @@ from ..core.correction_model import correction_from_dict as correction_from_dict
 from ..core.correction_model import local_fit as local_fit
 from ..core.correction_model import memoised_search as memoised_search
 from ..core.correction_model import neighbours_without_self as neighbours_without_self
-from ..core.robust import Loss, robust_sigma_px
+from ..core.robust import robust_sigma_px
 
 
 def _inlier_rms(adj) -> float:
@@ -243,8 +243,7 @@ def grey_box_loop(problem, adj, optimizer, options, say: Callable[[str], None], 
         prev_rms = _rms(adj.residuals_px, train)
         problem.corrections_px = corrections
         # a warm start: the robust stages go on from the previous round's solution and
-        # scale (no least-squares stage; a sigma the user gave (--sigma-px) stays fixed),
-        # with Cauchy's loss when that solution's was
+        # scale (no least-squares stage; a sigma the user gave (--sigma-px) stays fixed)
         adj = adjust(
             problem,
             adj.values,
@@ -252,7 +251,6 @@ def grey_box_loop(problem, adj, optimizer, options, say: Callable[[str], None], 
             None,
             estimate_sigma=options.sigma_px is None,
             warm=True,
-            robust_loss=Loss.CAUCHY if adj.loss.endswith(str(Loss.CAUCHY)) else None,
         )
         rms_train = _rms(adj.residuals_px, train)
         rms = _inlier_rms(adj)
