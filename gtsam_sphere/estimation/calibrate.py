@@ -214,6 +214,9 @@ CAUCHY_MIN_FRACTION = 0.005
 #: a robust stage of :func:`adjust` holds out the targets without a sigma that only
 #: observations beyond this many sigmas tie to a second image (:func:`held_out_targets`)
 GROSS_SIGMA = 10.0
+#: ... and beyond this many pixels: a camera fitted exactly (a rig camera's group of two
+#: images, its scale at the 0.005 px floor) has no blunders to tell at 10 sigma
+GROSS_MIN_PX = 1.0
 
 
 def held_out_targets(problem: BundleProblem, values: gtsam.Values) -> np.ndarray:
@@ -240,6 +243,10 @@ def held_out_targets(problem: BundleProblem, values: gtsam.Values) -> np.ndarray
     values : gtsam.Values
         The stage's start.
 
+    Gross: beyond :data:`GROSS_SIGMA` sigmas and :data:`GROSS_MIN_PX` (a free rig's
+    camera fitted exactly on two images held out targets at 0.05 px, and its rig lost
+    its trust; ``tests/test_rig_trust.py``).
+
     Returns
     -------
     ndarray of bool, shape (N,)
@@ -251,7 +258,7 @@ def held_out_targets(problem: BundleProblem, values: gtsam.Values) -> np.ndarray
     if n == 0 or problem.image_pose_keys is not None or problem.image_extrinsic_keys is not None:
         return none
     r = np.linalg.norm(problem.residuals_px(values), axis=1)
-    gross = ~(r <= GROSS_SIGMA * problem.noise.sigma_px)
+    gross = ~(r <= max(GROSS_SIGMA * problem.noise.sigma_px, GROSS_MIN_PX))
     if not gross.any():
         return none
     sigma = np.asarray(problem.target_sigma, float)
