@@ -236,16 +236,16 @@ def held_out_targets(problem: BundleProblem, values: gtsam.Values) -> np.ndarray
     its first iteration. Such targets are left out of the adjusted targets afterwards
     (:func:`targets_lost_to_outliers`); this keeps them out of the stage too.
 
+    Gross: beyond :data:`GROSS_SIGMA` sigmas and :data:`GROSS_MIN_PX` (a free rig's
+    camera fitted exactly on two images held out targets at 0.05 px, and its rig lost
+    its trust; ``tests/test_rig_trust.py``).
+
     Parameters
     ----------
     problem : BundleProblem
         Built (its residuals are evaluated); its ``noise.sigma_px`` is the scale.
     values : gtsam.Values
         The stage's start.
-
-    Gross: beyond :data:`GROSS_SIGMA` sigmas and :data:`GROSS_MIN_PX` (a free rig's
-    camera fitted exactly on two images held out targets at 0.05 px, and its rig lost
-    its trust; ``tests/test_rig_trust.py``).
 
     Returns
     -------
