@@ -219,9 +219,7 @@ GROSS_SIGMA = 10.0
 GROSS_MIN_PX = 1.0
 
 
-def held_out_targets(
-    problem: BundleProblem, values: gtsam.Values, r_px: np.ndarray | None = None
-) -> np.ndarray:
+def held_out_targets(problem: BundleProblem, values: gtsam.Values) -> np.ndarray:
     """Targets a robust stage must hold out: free, and determined only by gross rays.
 
     A target without a sigma seen in two images, one of them through a blunder, sits on
@@ -248,8 +246,6 @@ def held_out_targets(
         Built (its residuals are evaluated); its ``noise.sigma_px`` is the scale.
     values : gtsam.Values
         The stage's start.
-    r_px : ndarray, shape (N,), optional
-        The residual norms (px) at ``values``, when the caller has them.
 
     Returns
     -------
@@ -261,7 +257,7 @@ def held_out_targets(
     none = np.zeros(n, bool)
     if n == 0 or problem.image_pose_keys is not None or problem.image_extrinsic_keys is not None:
         return none
-    r = np.linalg.norm(problem.residuals_px(values), axis=1) if r_px is None else r_px
+    r = np.linalg.norm(problem.residuals_px(values), axis=1)
     gross = ~(r <= max(GROSS_SIGMA * problem.noise.sigma_px, GROSS_MIN_PX))
     if not gross.any():
         return none
@@ -549,8 +545,7 @@ def _robust_stage(
     """One robust stage of :func:`adjust` on ``graph`` (``problem`` built), holding out the
     targets :func:`held_out_targets` names: they follow their good image's pose, at the
     depth along its ray they had."""
-    r = np.linalg.norm(problem.residuals_px(start), axis=1)
-    hold = held_out_targets(problem, start, r)
+    hold = held_out_targets(problem, start)
     sub = _inlier_problem(problem, ~hold) if hold.any() else None
     sub_graph = None
     if sub is not None:
@@ -569,6 +564,7 @@ def _robust_stage(
     out = optimize(sub_graph, sub_values, optimizer, sub_ordering, progress, label)
     merged = gtsam.Values(start)
     merged.update(out.values)
+    r = np.linalg.norm(problem.residuals_px(start), axis=1)
     good = []
     for t in held:
         rows = np.flatnonzero(problem.obs_target == t)
@@ -583,15 +579,21 @@ def _robust_stage(
 
 def _onto_rays(problem: BundleProblem, values: gtsam.Values, targets, rows) -> None:
     """Move free ``targets`` (k,) across observation ``rows`` (k,)'s rays until those
-    observations fit, in place: Gauss-Newton steps of least norm on the engine's
-    analytic target Jacobians (:meth:`BundleProblem.target_jacobians`), which are normal
-    to the ray (a step along it changes nothing) and so keep each target's depth."""
+    observations fit, in place: Gauss-Newton steps of least norm, which are normal to
+    the ray (a step along it changes nothing) and so keep each target's depth."""
     keys = [point_key(int(t)) for t in targets]
     for _ in range(3):
-        e_px = problem.residuals_px(values)[rows]  # measured - predicted
-        J = problem.target_jacobians(values)[rows]  # d predicted / d point
-        for k, Jk, ek in zip(keys, J, e_px):
-            values.update(k, values.atPoint3(k) + np.linalg.pinv(Jk) @ ek)
+        points = np.array([values.atPoint3(k) for k in keys])
+        e0 = problem.residuals_px(values)[rows]
+        step_m = 1e-6 * np.maximum(np.linalg.norm(points, axis=1), 1e-3)
+        J = np.empty((len(keys), 2, 3))
+        for a in range(3):
+            trial = gtsam.Values(values)
+            for k, p, h in zip(keys, points, step_m):
+                trial.update(k, p + h * np.eye(3)[a])
+            J[:, :, a] = (problem.residuals_px(trial)[rows] - e0) / step_m[:, None]
+        for k, p, Jk, ek in zip(keys, points, J, e0):
+            values.update(k, p - np.linalg.pinv(Jk) @ ek)
 
 
 def _sub_values(sub: BundleProblem, values: gtsam.Values):
